@@ -1,0 +1,32 @@
+# Two commands set everything up on a fresh machine with nothing but Python:
+#   make demo   - create/reuse .venv, install diffgns, run the main example
+#   make test   - create/reuse .venv, install diffgns[test], run ruff and the default tests
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+OUT ?= results/demo
+
+.PHONY: demo test test-slow bench lint venv
+
+$(VENV)/.installed-%: pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[$*]"
+	touch $@
+
+venv: $(VENV)/.installed-test
+
+demo: $(VENV)/.installed-test
+	$(PY) examples/column_collapse_demo.py --out $(OUT)
+
+test: $(VENV)/.installed-test
+	$(VENV)/bin/ruff check src tests examples benchmarks
+	$(PY) -m pytest -q -x
+
+test-slow: $(VENV)/.installed-test
+	$(PY) -m pytest -q -m slow
+
+bench: $(VENV)/.installed-bench $(VENV)/.installed-test
+	$(PY) benchmarks/mpm_throughput.py
+	$(PY) benchmarks/mpm_vs_taichi.py
+	$(PY) benchmarks/mpm_effects.py

@@ -1,0 +1,50 @@
+"""Trajectory pytree: particle states sampled at frames.
+
+Every simulator (MPM, GNS, hybrid) returns a :class:`Trajectory`, so downstream
+code (metrics, datasets, plots) never cares which simulator produced it.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+# Particle types, following the convention of the published GNS datasets.
+KINEMATIC = 3
+FLUID = 5
+SAND = 6
+ELASTIC = 7
+
+
+@struct.dataclass
+class Trajectory:
+    """Particle states at frames.
+
+    Attributes:
+        positions: (T, N, 2) particle positions in m.
+        velocities: (T, N, 2) particle velocities in m/s.
+        particle_type: (N,) int32 particle type (SAND, FLUID, ELASTIC, KINEMATIC).
+        material: (N,) float material feature, tan(friction angle) for sand, 0 otherwise.
+        frame_dt: time between frames in s (static).
+        bounds: ((xmin, xmax), (ymin, ymax)) of the domain in m (static).
+    """
+
+    positions: jax.Array
+    velocities: jax.Array
+    particle_type: jax.Array
+    material: jax.Array
+    frame_dt: float = struct.field(pytree_node=False, default=2.5e-3)
+    bounds: tuple = struct.field(pytree_node=False, default=((0.0, 1.0), (0.0, 1.0)))
+
+    @property
+    def n_frames(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def n_particles(self) -> int:
+        return self.positions.shape[1]
+
+    @property
+    def times(self) -> jax.Array:
+        """(T,) time of each frame in s."""
+        return jnp.arange(self.n_frames) * self.frame_dt
