@@ -1,27 +1,18 @@
 """Trajectory datasets on disk.
 
-Two layouts are supported:
+* **HDF5**, LagrangeBench-like (:class:`DatasetWriter`, :func:`load_dataset`,
+  :func:`iter_dataset`): one group per trajectory named ``"00000"``, ``"00001"``, ... with
+  datasets ``position`` (T, N, 2) float32 m, ``velocity`` (T, N, 2) float32 m/s,
+  ``particle_type`` (N,) int32, ``material_property`` (N,) float32 (tan friction angle) and
+  attributes ``frame_dt`` (s) and ``bounds`` ((2, 2), m). :meth:`DatasetWriter.finalize` writes
+  the statistics to ``<stem>.metadata.json`` next to the file (``data/train.h5`` ->
+  ``data/train.metadata.json``), so several splits can share a folder.
+* **PyTorch GNS** ``.npz`` (:func:`load_gns_npz`, :func:`write_gns_npz`): one entry per
+  trajectory, a tuple ``(positions, particle_type[, material_property])``, with a
+  ``metadata.json`` in the same folder.
 
-* **HDF5** in a LagrangeBench-like layout, written by :class:`DatasetWriter` and read by
-  :func:`load_dataset` / :func:`iter_dataset`. One group per trajectory, named ``"00000"``,
-  ``"00001"``, ..., holding the datasets
-
-  - ``position`` (T, N, 2) float32, m
-  - ``velocity`` (T, N, 2) float32, m/s (optional on read: finite differences are used)
-  - ``particle_type`` (N,) int32
-  - ``material_property`` (N,) float32, tan(friction angle) (optional on read: zeros)
-
-  and the group attributes ``frame_dt`` (s) and ``bounds`` ((2, 2), m). The dataset
-  statistics are written by :meth:`DatasetWriter.finalize` to ``<stem>.metadata.json`` next to
-  the file (``data/train.h5`` -> ``data/train.metadata.json``), so several splits can share a
-  folder.
-
-* **PyTorch GNS** ``.npz`` files (one entry per trajectory, each a tuple
-  ``(positions, particle_type[, material_property])``) plus a ``metadata.json`` in the same
-  folder, read by :func:`load_gns_npz` and written by :func:`write_gns_npz`.
-
-Statistics are in frame units as GNS training expects: velocity ``x_t - x_{t-1}`` (m per
-frame) and acceleration ``v_t - v_{t-1}`` (m per frame^2), not m/s.
+Statistics are in frame units as GNS training expects: velocity ``x_t - x_{t-1}`` (m/frame)
+and acceleration ``v_t - v_{t-1}`` (m/frame^2), not m/s.
 """
 from __future__ import annotations
 
@@ -29,7 +20,6 @@ import json
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Self
 
 import h5py
 import jax.numpy as jnp
@@ -38,14 +28,13 @@ import numpy as np
 from .trajectory import Trajectory
 
 _TMP_PREFIX = "_incomplete_"
-_RESERVED_KEYS = frozenset({
-    "bounds", "dim", "dt", "default_connectivity_radius", "vel_mean", "vel_std", "acc_mean",
-    "acc_std", "sequence_length", "n_trajectories", "n_particles",
-})
+_RESERVED_KEYS = frozenset({"bounds", "dim", "dt", "default_connectivity_radius", "vel_mean",
+                            "vel_std", "acc_mean", "acc_std", "sequence_length",
+                            "n_trajectories", "n_particles"})
 
 
 def metadata_path(path: str | Path) -> Path:
-    """Path of the metadata file belonging to the HDF5 file ``path``: ``<dir>/<stem>.metadata.json``."""
+    """Metadata file of the HDF5 file ``path``: ``<dir>/<stem>.metadata.json``."""
     path = Path(path)
     return path.with_name(f"{path.stem}.metadata.json")
 
@@ -64,82 +53,71 @@ def finite_difference_velocity(positions: np.ndarray, dt: float) -> np.ndarray:
     return vel
 
 
-class _RunningStats:
-    """Per-component mean/std of (..., d) samples, merged with Chan's parallel formula."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.mean: np.ndarray | None = None
-        self.m2: np.ndarray | None = None
-
-    def update(self, samples: np.ndarray) -> None:
-        samples = samples.reshape(-1, samples.shape[-1])
-        n = samples.shape[0]
-        if n == 0:
-            return
-        # numpy reductions use pairwise summation, so the per-batch moments are accurate in
-        # the data dtype; merging happens in Python-float precision.
-        mean_b = samples.mean(axis=0).tolist()
-        m2_b = (samples.var(axis=0) * n).tolist()
-        if self.count == 0:
-            self.count, self.mean, self.m2 = n, np.array(mean_b), np.array(m2_b)
-            return
-        total = self.count + n
-        delta = np.array(mean_b) - self.mean
-        self.mean = self.mean + delta * (n / total)
-        self.m2 = self.m2 + np.array(m2_b) + delta**2 * (self.count * n / total)
-        self.count = total
-
-    def result(self, what: str) -> tuple[list[float], list[float]]:
-        if self.count == 0:
-            raise ValueError(f"no {what} samples: every trajectory is too short")
-        return self.mean.tolist(), np.sqrt(self.m2 / self.count).tolist()
+def _pooled(parts: list[tuple[int, list, list]], what: str) -> tuple[list, list]:
+    """Mean and population std of the union of sample sets given as (count, mean, m2)."""
+    _require(bool(parts), f"no {what} samples: every trajectory is too short")
+    counts, means, m2 = (np.array([p[i] for p in parts]) for i in range(3))
+    mean = (counts[:, None] * means).sum(axis=0) / counts.sum()
+    var = (m2 + counts[:, None] * (means - mean) ** 2).sum(axis=0) / counts.sum()
+    return mean.tolist(), np.sqrt(var).tolist()
 
 
 def compute_statistics(positions: Iterable[np.ndarray]) -> dict:
     """Frame-unit statistics over trajectories given as positions arrays (T, N, d).
 
     Returns ``vel_mean``, ``vel_std`` (m/frame) and ``acc_mean``, ``acc_std`` (m/frame^2),
-    each a list of length d (population std over all particles and frames).
+    each a list of length d (population std over all particles and frames). Trajectories are
+    processed one at a time, so the dataset never has to fit in memory.
     """
-    vel_stats, acc_stats = _RunningStats(), _RunningStats()
+    vel_parts, acc_parts = [], []
     for pos in positions:
         vel = np.diff(np.asarray(pos), axis=0)
-        vel_stats.update(vel)
-        acc_stats.update(np.diff(vel, axis=0))
-    vel_mean, vel_std = vel_stats.result("velocity")
-    acc_mean, acc_std = acc_stats.result("acceleration")
+        for parts, x in ((vel_parts, vel), (acc_parts, np.diff(vel, axis=0))):
+            x = x.reshape(-1, x.shape[-1])
+            if len(x):  # numpy's pairwise sums keep these accurate in the data dtype
+                parts.append((len(x), x.mean(axis=0).tolist(), (x.var(axis=0) * len(x)).tolist()))
+    vel_mean, vel_std = _pooled(vel_parts, "velocity")
+    acc_mean, acc_std = _pooled(acc_parts, "acceleration")
     return {"vel_mean": vel_mean, "vel_std": vel_std, "acc_mean": acc_mean, "acc_std": acc_std}
 
 
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _as_bounds(value, where: str) -> tuple:
+    arr = np.asarray(value, dtype=float)
+    _require(arr.shape == (2, 2), f"{where}: 'bounds' must be [[xmin, xmax], [ymin, ymax]]")
+    return tuple(tuple(float(b) for b in row) for row in arr)
+
+
+def _as_material(mat, n: int, where: str, name: str = "material_property") -> np.ndarray:
+    mat = np.asarray(mat)
+    mat = np.full((n,), mat) if mat.ndim == 0 else mat
+    _require(mat.shape == (n,), f"{where}: '{name}' must be scalar or ({n},), got {mat.shape}")
+    return mat
+
+
 def _check_trajectory(traj: Trajectory) -> None:
-    if traj.positions.ndim != 3:
-        raise ValueError(
-            f"trajectory field 'positions' must be (T, N, 2), got shape {traj.positions.shape}"
-        )
-    t, n = traj.positions.shape[:2]
-    expected = {
-        "positions": (traj.positions.shape, (t, n, 2)),
-        "velocities": (traj.velocities.shape, (t, n, 2)),
-        "particle_type": (traj.particle_type.shape, (n,)),
-        "material": (traj.material.shape, (n,)),
-    }
-    for name, (shape, want) in expected.items():
-        if tuple(shape) != want:
-            raise ValueError(f"trajectory field '{name}' has shape {tuple(shape)}, expected {want}")
+    shape = tuple(traj.positions.shape)
+    _require(len(shape) == 3 and shape[-1] == 2,
+             f"trajectory field 'positions' must be (T, N, 2), got {shape}")
+    for name, want in [("velocities", shape), ("particle_type", shape[1:2]),
+                       ("material", shape[1:2])]:
+        got = tuple(getattr(traj, name).shape)
+        _require(got == want, f"trajectory field '{name}' has shape {got}, expected {want}")
 
 
 def _attr_value(value):
-    """Convert a user attribute to something HDF5 can store (JSON text as a fallback)."""
-    if isinstance(value, (str, bytes, int, float, bool, np.generic, np.ndarray)):
+    """HDF5-storable form of a user attribute: strings and numbers as is, else JSON text."""
+    if isinstance(value, (str, bytes)):
         return value
     try:
         arr = np.asarray(value)
-        if arr.dtype.kind in "biuf":
-            return arr
-    except (ValueError, TypeError):
-        pass
-    return json.dumps(value, default=str)
+    except ValueError:  # ragged sequences
+        arr = np.asarray(None)
+    return arr if arr.dtype.kind in "biuf" else json.dumps(value, default=str)
 
 
 class DatasetWriter:
@@ -157,19 +135,15 @@ class DatasetWriter:
     """
 
     def __init__(self, path: str | Path, metadata_extra: dict | None = None):
+        clash = sorted(_RESERVED_KEYS.intersection(metadata_extra or {}))
+        _require(not clash, f"metadata_extra may not override computed keys {clash}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = h5py.File(self.path, "a")
-        for name in list(self._file.keys()):
-            if name.startswith(_TMP_PREFIX):
-                del self._file[name]
+        for name in [k for k in self._file if k.startswith(_TMP_PREFIX)]:
+            del self._file[name]  # left by an interrupted write
         if metadata_extra is None:
-            stored = self._file.attrs.get("metadata_extra")
-            metadata_extra = json.loads(stored) if stored is not None else {}
-        clash = _RESERVED_KEYS.intersection(metadata_extra)
-        if clash:
-            self._file.close()
-            raise ValueError(f"metadata_extra may not override computed keys {sorted(clash)}")
+            metadata_extra = json.loads(self._file.attrs.get("metadata_extra", "{}"))
         self.metadata_extra = dict(metadata_extra)
         self._file.attrs["metadata_extra"] = json.dumps(self.metadata_extra, default=str)
         self._file.flush()
@@ -201,8 +175,8 @@ class DatasetWriter:
         ``attrs`` are stored as group attributes (numbers, strings and numeric arrays as is,
         anything else as JSON text). The file is flushed before returning.
         """
-        if not key or key.startswith(_TMP_PREFIX) or "/" in key:
-            raise ValueError(f"invalid trajectory key {key!r}")
+        _require(bool(key) and not key.startswith(_TMP_PREFIX) and "/" not in key,
+                 f"invalid trajectory key {key!r}")
         _check_trajectory(traj)
         tmp = _TMP_PREFIX + key
         if tmp in self._file:
@@ -222,37 +196,28 @@ class DatasetWriter:
         self._file.flush()
 
     def finalize(self, connectivity_radius: float) -> dict:
-        """Compute the dataset statistics and write :func:`metadata_path` (``<stem>.metadata.json``).
+        """Compute the statistics and write ``<stem>.metadata.json`` (:func:`metadata_path`).
 
-        Args:
-            connectivity_radius: default graph connectivity radius in m.
-
-        Returns:
-            The metadata dict: ``bounds`` [[xmin, xmax], [ymin, ymax]] (the union over
-            trajectories), ``dim``, ``dt`` (frame dt, s), ``default_connectivity_radius``,
-            ``vel_mean``/``vel_std`` (m/frame), ``acc_mean``/``acc_std`` (m/frame^2),
-            ``sequence_length`` (frames per trajectory), ``n_trajectories``, ``n_particles``
-            (per trajectory), plus ``metadata_extra``.
+        Returns the metadata dict: ``bounds`` [[xmin, xmax], [ymin, ymax]] (union over the
+        trajectories), ``dim``, ``dt`` (frame dt, s), ``default_connectivity_radius`` (m),
+        ``vel_mean``/``vel_std`` (m/frame), ``acc_mean``/``acc_std`` (m/frame^2),
+        ``sequence_length`` and ``n_particles`` (lists, one per trajectory), ``n_trajectories``,
+        plus ``metadata_extra``.
         """
         keys = self.keys()
-        if not keys:
-            raise ValueError(f"{self.path}: no trajectories to finalize")
+        _require(bool(keys), f"{self.path}: no trajectories to finalize")
         dts = [float(self._file[k].attrs["frame_dt"]) for k in keys]
-        if not np.allclose(dts, dts[0], rtol=1e-6, atol=0):
-            raise ValueError(f"{self.path}: trajectories have different frame_dt {sorted(set(dts))}")
+        _require(np.allclose(dts, dts[0], rtol=1e-6, atol=0),
+                 f"{self.path}: trajectories differ in frame_dt {sorted(set(dts))}")
         all_bounds = np.stack([np.asarray(self._file[k].attrs["bounds"]) for k in keys])
         bounds = np.stack([all_bounds[:, :, 0].min(axis=0), all_bounds[:, :, 1].max(axis=0)], 1)
-        stats = compute_statistics(self._file[k]["position"][()] for k in keys)
+        shapes = [self._file[k]["position"].shape for k in keys]
         meta = {
-            "bounds": bounds.tolist(),
-            "dim": 2,
-            "dt": dts[0],
+            "bounds": bounds.tolist(), "dim": 2, "dt": dts[0],
             "default_connectivity_radius": float(connectivity_radius),
-            **stats,
-            "sequence_length": [int(self._file[k]["position"].shape[0]) for k in keys],
-            "n_trajectories": len(keys),
-            "n_particles": [int(self._file[k]["position"].shape[1]) for k in keys],
-            **self.metadata_extra,
+            **compute_statistics(self._file[k]["position"][()] for k in keys),
+            "sequence_length": [int(sh[0]) for sh in shapes], "n_trajectories": len(keys),
+            "n_particles": [int(sh[1]) for sh in shapes], **self.metadata_extra,
         }
         metadata_path(self.path).write_text(json.dumps(meta, indent=2, default=str))
         return meta
@@ -262,7 +227,7 @@ class DatasetWriter:
         if self._file.id.valid:
             self._file.close()
 
-    def __enter__(self) -> Self:
+    def __enter__(self):
         return self
 
     def __exit__(self, *exc) -> None:
@@ -285,52 +250,36 @@ def read_metadata(path: str | Path) -> dict:
     return json.loads(path.read_text())
 
 
+def _make_trajectory(pos, vel, ptype, mat, frame_dt: float, bounds: tuple) -> Trajectory:
+    return Trajectory(positions=jnp.asarray(pos), velocities=jnp.asarray(vel),
+                      particle_type=jnp.asarray(ptype, dtype=jnp.int32),
+                      material=jnp.asarray(mat), frame_dt=frame_dt, bounds=bounds)
+
+
 def _read_group(path: Path, key: str, grp: h5py.Group, meta: dict | None) -> Trajectory:
     where = f"{path}: group '{key}'"
-    if "position" not in grp:
-        raise ValueError(f"{where}: missing dataset 'position'")
-    pos = grp["position"][()]
-    if pos.ndim != 3 or pos.shape[-1] != 2:
-        raise ValueError(f"{where}: 'position' must have shape (T, N, 2), got {pos.shape}")
+    for name in ("position", "particle_type"):
+        _require(name in grp, f"{where}: missing dataset '{name}'")
+    pos, ptype = grp["position"][()], grp["particle_type"][()]
+    _require(pos.ndim == 3 and pos.shape[-1] == 2,
+             f"{where}: 'position' must have shape (T, N, 2), got {pos.shape}")
     n = pos.shape[1]
-    if "particle_type" not in grp:
-        raise ValueError(f"{where}: missing dataset 'particle_type'")
-    ptype = grp["particle_type"][()]
-    if ptype.shape != (n,):
-        raise ValueError(f"{where}: 'particle_type' must have shape ({n},), got {ptype.shape}")
+    _require(ptype.shape == (n,), f"{where}: 'particle_type' must be ({n},), got {ptype.shape}")
 
     def attr(name: str, meta_name: str):
         if name in grp.attrs:
             return grp.attrs[name]
-        if meta is not None and meta_name in meta:
-            return meta[meta_name]
-        raise ValueError(f"{where}: missing attribute '{name}' (and no '{meta_name}' in metadata)")
+        _require(meta is not None and meta_name in meta,
+                 f"{where}: missing attribute '{name}' (and no '{meta_name}' in metadata)")
+        return meta[meta_name]
 
     frame_dt = float(attr("frame_dt", "dt"))
-    bounds_arr = np.asarray(attr("bounds", "bounds"), dtype=float)
-    if bounds_arr.shape != (2, 2):
-        raise ValueError(f"{where}: 'bounds' must have shape (2, 2), got {bounds_arr.shape}")
-    bounds = tuple(tuple(float(b) for b in row) for row in bounds_arr)
-
-    if "velocity" in grp:
-        vel = grp["velocity"][()]
-        if vel.shape != pos.shape:
-            raise ValueError(f"{where}: 'velocity' must have shape {pos.shape}, got {vel.shape}")
-    else:
-        vel = finite_difference_velocity(pos, frame_dt)
-    if "material_property" in grp:
-        mat = grp["material_property"][()]
-        if mat.ndim == 0:
-            mat = np.full((n,), mat)
-        if mat.shape != (n,):
-            raise ValueError(f"{where}: 'material_property' must have shape ({n},), got {mat.shape}")
-    else:
-        mat = np.zeros((n,), dtype=pos.dtype)
-    return Trajectory(
-        positions=jnp.asarray(pos), velocities=jnp.asarray(vel),
-        particle_type=jnp.asarray(ptype, dtype=jnp.int32), material=jnp.asarray(mat),
-        frame_dt=frame_dt, bounds=bounds,
-    )
+    bounds = _as_bounds(attr("bounds", "bounds"), where)
+    vel = grp["velocity"][()] if "velocity" in grp else finite_difference_velocity(pos, frame_dt)
+    _require(vel.shape == pos.shape, f"{where}: 'velocity' must be {pos.shape}, got {vel.shape}")
+    mat = (_as_material(grp["material_property"][()], n, where) if "material_property" in grp
+           else np.zeros((n,), dtype=pos.dtype))
+    return _make_trajectory(pos, vel, ptype, mat, frame_dt, bounds)
 
 
 def iter_dataset(path: str | Path, keys: Sequence[str] | None = None) -> Iterator[Trajectory]:
@@ -363,29 +312,18 @@ def load_dataset(path: str | Path) -> list[Trajectory]:
     return list(iter_dataset(path))
 
 
-def _unpack_gns_entry(name: str, entry) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def _unpack_gns_entry(name: str, entry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    where = f"npz entry '{name}'"
     if isinstance(entry, np.ndarray) and entry.dtype == object:
         entry = list(entry.reshape(-1)) if entry.ndim else entry.item()
-    if not isinstance(entry, (tuple, list)) or len(entry) not in (2, 3):
-        raise ValueError(
-            f"npz entry '{name}': expected a tuple (positions, particle_type[, material_property])"
-        )
+    _require(isinstance(entry, (tuple, list)) and len(entry) in (2, 3),
+             f"{where}: expected a tuple (positions, particle_type[, material_property])")
     pos, ptype = np.asarray(entry[0]), np.asarray(entry[1])
-    mat = np.asarray(entry[2]) if len(entry) == 3 else None
-    if pos.ndim != 3:
-        raise ValueError(f"npz entry '{name}': positions must be (T, N, d), got shape {pos.shape}")
-    if pos.shape[-1] != 2:
-        raise ValueError(f"npz entry '{name}': positions must be 2-D (d=2), got d={pos.shape[-1]}")
+    _require(pos.ndim == 3, f"{where}: positions must be (T, N, d), got shape {pos.shape}")
+    _require(pos.shape[-1] == 2, f"{where}: positions must be 2-D (d=2), got d={pos.shape[-1]}")
     n = pos.shape[1]
-    if ptype.shape != (n,):
-        raise ValueError(f"npz entry '{name}': particle_type must be ({n},), got {ptype.shape}")
-    if mat is not None:
-        if mat.ndim == 0:
-            mat = np.full((n,), mat)
-        if mat.shape != (n,):
-            raise ValueError(
-                f"npz entry '{name}': material_property must be scalar or ({n},), got {mat.shape}"
-            )
+    _require(ptype.shape == (n,), f"{where}: particle_type must be ({n},), got {ptype.shape}")
+    mat = _as_material(entry[2], n, where) if len(entry) == 3 else np.zeros((n,), pos.dtype)
     return pos, ptype, mat
 
 
@@ -409,13 +347,9 @@ def load_gns_npz(
     meta_path = Path(metadata_json) if metadata_json else path_npz.with_name("metadata.json")
     if not meta_path.exists():
         raise FileNotFoundError(f"metadata file {meta_path} for {path_npz} does not exist")
-    meta = json.loads(meta_path.read_text())
-    if "bounds" not in meta:
-        raise ValueError(f"{meta_path}: missing key 'bounds'")
-    bounds_arr = np.asarray(meta["bounds"], dtype=float)
-    if bounds_arr.shape != (2, 2):
-        raise ValueError(f"{meta_path}: 'bounds' must be [[xmin, xmax], [ymin, ymax]]")
-    bounds = tuple(tuple(float(b) for b in row) for row in bounds_arr)
+    meta = read_metadata(meta_path)
+    _require("bounds" in meta, f"{meta_path}: missing key 'bounds'")
+    bounds = _as_bounds(meta["bounds"], str(meta_path))
     if "dt" in meta:
         dt = float(meta["dt"])
     else:
@@ -424,27 +358,16 @@ def load_gns_npz(
 
     trajs = []
     with np.load(path_npz, allow_pickle=True) as data:
-        if not data.files:
-            raise ValueError(f"{path_npz}: no trajectories")
+        _require(bool(data.files), f"{path_npz}: no trajectories")
         for name in data.files:
             pos, ptype, mat = _unpack_gns_entry(name, data[name])
-            if mat is None:
-                mat = np.zeros((pos.shape[1],), dtype=pos.dtype)
-            trajs.append(Trajectory(
-                positions=jnp.asarray(pos),
-                velocities=jnp.asarray(finite_difference_velocity(pos, dt)),
-                particle_type=jnp.asarray(ptype, dtype=jnp.int32), material=jnp.asarray(mat),
-                frame_dt=dt, bounds=bounds,
-            ))
+            vel = finite_difference_velocity(pos, dt)
+            trajs.append(_make_trajectory(pos, vel, ptype, mat, dt, bounds))
     return trajs, meta
 
 
-def write_gns_npz(
-    path: str | Path,
-    trajectories: Sequence[Trajectory],
-    write_metadata: bool = True,
-    connectivity_radius: float | None = None,
-) -> Path:
+def write_gns_npz(path: str | Path, trajectories: Sequence[Trajectory], write_metadata: bool = True,
+                  connectivity_radius: float | None = None) -> Path:
     """Write trajectories in the PyTorch-GNS ``.npz`` layout.
 
     Entries are ``simulation_trajectory_<i>`` object arrays ``(positions, particle_type,
@@ -454,8 +377,7 @@ def write_gns_npz(
     ``default_connectivity_radius``. Returns the ``.npz`` path.
     """
     path = Path(path)
-    if not trajectories:
-        raise ValueError("write_gns_npz needs at least one trajectory")
+    _require(len(trajectories) > 0, "write_gns_npz needs at least one trajectory")
     path.parent.mkdir(parents=True, exist_ok=True)
     entries = {}
     for i, traj in enumerate(trajectories):
@@ -468,13 +390,9 @@ def write_gns_npz(
         np.savez(fh, **entries)
     if write_metadata:
         first = trajectories[0]
-        meta = {
-            "bounds": [list(b) for b in first.bounds],
-            "dim": 2,
-            "dt": float(first.frame_dt),
-            "sequence_length": int(first.n_frames),
-            **compute_statistics(np.asarray(t.positions) for t in trajectories),
-        }
+        meta = {"bounds": [list(b) for b in first.bounds], "dim": 2, "dt": float(first.frame_dt),
+                "sequence_length": int(first.n_frames),
+                **compute_statistics(np.asarray(t.positions) for t in trajectories)}
         if connectivity_radius is not None:
             meta["default_connectivity_radius"] = float(connectivity_radius)
         path.with_name("metadata.json").write_text(json.dumps(meta, indent=2))

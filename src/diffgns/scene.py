@@ -213,7 +213,8 @@ class Scene:
     def body_order(self) -> list[int]:
         """Body indices sorted by material group then declaration order."""
         order = {e: i for i, e in enumerate(EFFECT_ORDER)}
-        return sorted(range(len(self.bodies)), key=lambda b: (order[self.bodies[b].material.effect], b))
+        return sorted(range(len(self.bodies)),
+                      key=lambda b: (order[self.bodies[b].material.effect], b))
 
     def material_groups(self) -> dict[str, slice]:
         """Static particle slices per material effect, e.g. {"sand": slice(0, 1200)}."""

@@ -37,7 +37,9 @@ def _check_keys(d: dict, allowed: set, where: str) -> None:
         raise SceneError(f"{where} must be a table, got {type(d).__name__}")
     extra = set(d) - allowed
     if extra:
-        raise SceneError(f"{where} has unknown field(s) {sorted(extra)}; allowed: {sorted(allowed)}")
+        raise SceneError(
+            f"{where} has unknown field(s) {sorted(extra)}; allowed: {sorted(allowed)}"
+        )
 
 
 def _wall(d: dict, where: str) -> Wall:
@@ -78,16 +80,24 @@ def scene_from_dict(d: dict) -> Scene:
         _check_keys(b, {"shape", "material", "velocity", "particles_per_cell", "name"}, where)
         if "shape" not in b or "material" not in b:
             raise SceneError(f"{where} needs both 'shape' and 'material'")
+        if not isinstance(b["material"], dict):
+            raise SceneError(f"{where}.material must be a table like {{type = \"sand\", ...}}")
+        velocity = b.get("velocity", (0.0, 0.0))
+        if not (isinstance(velocity, list | tuple) and len(velocity) == 2):
+            raise SceneError(f"{where}.velocity = {velocity!r} must be [vx, vy] in m/s")
         bodies.append(Body(
             shape=_shape(b["shape"], f"{where}.shape"),
             material=material_from_dict(b["material"], where),
-            velocity=tuple(b.get("velocity", (0.0, 0.0))),
+            velocity=tuple(velocity),
             particles_per_cell=b.get("particles_per_cell", 4), name=b.get("name", ""),
         ))
     obstacles = []
     for i, o in enumerate(d.get("obstacles", [])):
         where = f"[[obstacles]][{i}]"
         _check_keys(o, {"x0", "y0", "x1", "y1", "surface"}, where)
+        missing = {"x0", "y0", "x1", "y1"} - set(o)
+        if missing:
+            raise SceneError(f"{where} is missing {sorted(missing)}")
         surface = _wall(o.get("surface", {"kind": "sticky"}), f"{where}.surface")
         obstacles.append(BoxObstacle(o["x0"], o["y0"], o["x1"], o["y1"], surface))
     return Scene(bodies=tuple(bodies), walls=wall_objs, obstacles=tuple(obstacles), **sc)

@@ -28,7 +28,7 @@ _PANEL_INCHES = 4.0
 
 
 def _new_figure(figsize: tuple[float, float]) -> Figure:
-    fig = Figure(figsize=figsize, dpi=100)
+    fig = Figure(figsize=figsize, dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
@@ -111,7 +111,7 @@ def animate(
     (xmin, xmax), (ymin, ymax) = _union_bounds([t.bounds for t in trajs])
     aspect = (ymax - ymin) / (xmax - xmin)
     panel_h = float(np.clip(_PANEL_INCHES * aspect, 1.5, 2 * _PANEL_INCHES))
-    fig = _new_figure((_PANEL_INCHES * len(trajs) + (1.0 if speed else 0.0), panel_h + 0.8))
+    fig = _new_figure((_PANEL_INCHES * len(trajs) + (1.0 if speed else 0.0), panel_h + 0.6))
     axes = fig.subplots(1, len(trajs), squeeze=False)[0]
 
     scatters = []
@@ -187,7 +187,6 @@ def plot_runout(
     ax.grid(alpha=0.3)
     if labels is not None:
         ax.legend(fontsize=8)
-    fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -231,7 +230,6 @@ def plot_deposits(
     for handle in legend.legend_handles:  # legible legend markers whatever the particle size
         handle.set_sizes([20.0])
         handle.set_alpha(1.0)
-    fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

@@ -19,7 +19,8 @@ import numpy as np
 from ..errors import UnstableError
 from ..materials import Fluid, Sand
 from ..trajectory import ELASTIC, FLUID, SAND, Trajectory
-from . import boundaries, constitutive, linalg as la
+from . import boundaries, constitutive
+from . import linalg as la
 from .shape import stencil
 from .state import MPMParams, MPMState
 from .transfer import g2p, grid_velocity, p2g
@@ -128,7 +129,8 @@ class MPM:
             gv = boundaries.apply_obstacles(gv, self.obstacle_nodes, params.obstacle_mu)
         v, C = g2p(idx, w, dpos, gv, dx)
         x = state.x + dt * v
-        x = jnp.clip(x, jnp.asarray(self.lo, x.dtype)[:, None], jnp.asarray(self.hi, x.dtype)[:, None])
+        lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
+        x = jnp.clip(x, lo[:, None], hi[:, None])  # never leave the domain (and the grid)
         return state.replace(x=x, v=v, C=C, F=F)
 
     def frame(self, params: MPMParams, state: MPMState, checkpoint: bool = False) -> MPMState:

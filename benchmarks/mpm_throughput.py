@@ -1,0 +1,131 @@
+"""MPM throughput (particle-substeps per second) of a granular column collapse at ~2k,
+~8k and ~32k particles.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/mpm_throughput.py [--repeats 5] [--quick]
+
+Each size is ``column_collapse(cells_across=c)`` (sand, 4 particles per cell, friction
+floor, slip walls) run with the jitted ``MPM(scene).rollout_full``. ``frame_dt`` is
+scaled with dx so every frame has ~60 substeps at every resolution, and the number of
+frames per call is chosen so a steady call lasts about a second. For each size: the
+first call (compile + run) and ``--repeats`` steady calls are timed; compile time =
+first call - median steady call. Writes ``benchmarks/results/mpm_throughput.json`` and
+``mpm_throughput.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+from _common import (
+    RESULTS_DIR,
+    compile_and_steady,
+    fmt_rate,
+    machine_info,
+    use_agg,
+    warm_up_jax,
+    write_json,
+)
+
+from diffgns.mpm import MPM
+from diffgns.scene_builders import column_collapse
+
+# (cells across the column, frames per timed call); 4 particles per cell -> N = 4 c^2
+SIZES = ((23, 10), (45, 4), (90, 2))
+BASE_CELLS, BASE_FRAME_DT = 23, 2.5e-3
+
+
+def build(cells: int):
+    scene = column_collapse(cells_across=cells, frame_dt=BASE_FRAME_DT * BASE_CELLS / cells)
+    sim = MPM(scene)
+    return scene, sim, sim.params(), sim.init_state()
+
+
+def measure(cells: int, n_frames: int, repeats: int) -> dict:
+    scene, sim, params, state = build(cells)
+    call = lambda: sim.rollout_full(params, state, n_frames=n_frames)
+    t = compile_and_steady(call, repeats=repeats)
+    n, sub = scene.n_particles, scene.substeps
+    work = n * sub * n_frames  # particle-substeps per call
+    pos, _, _, _ = call()
+    finite = bool(jax.numpy.all(jax.numpy.isfinite(pos)))
+    return {
+        "n_particles": n,
+        "cells_across": cells,
+        "grid_shape": list(scene.grid_shape),
+        "grid_nodes": scene.grid_shape[0] * scene.grid_shape[1],
+        "dx_m": scene.dx,
+        "substep_dt_s": scene.substep_dt,
+        "substeps_per_frame": sub,
+        "frames_per_call": n_frames,
+        "substeps_per_call": sub * n_frames,
+        "particle_substeps_per_call": work,
+        "finite": finite,
+        **t,
+        "steady_particle_substeps_per_s": work / t["median_s"],
+        "steady_particle_substeps_per_s_best": work / t["min_s"],
+        "time_per_substep_ms": 1e3 * t["median_s"] / (sub * n_frames),
+    }
+
+
+def plot(rows, path):
+    plt = use_agg()
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
+    labels = [f"{r['n_particles']}" for r in rows]
+    rates = [r["steady_particle_substeps_per_s"] / 1e6 for r in rows]
+    lo = [(r["steady_particle_substeps_per_s"] - r["particle_substeps_per_call"] / r["max_s"])
+          / 1e6 for r in rows]
+    hi = [(r["steady_particle_substeps_per_s_best"] - r["steady_particle_substeps_per_s"]) / 1e6
+          for r in rows]
+    a0.bar(labels, rates, yerr=[lo, hi], capsize=4, color="tab:blue")
+    a0.set_xlabel("particles")
+    a0.set_ylabel("M particle-substeps / s (median, min-max bars)")
+    a0.set_title("MPM steady throughput (sand column, float32)")
+    a1.bar(labels, [r["compile_s"] for r in rows], color="tab:orange")
+    a1.set_xlabel("particles")
+    a1.set_ylabel("s")
+    a1.set_title("compile time (first call - median steady)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5, help="steady calls per size (>= 3)")
+    ap.add_argument("--quick", action="store_true", help="only the smallest size")
+    args = ap.parse_args()
+    machine = machine_info()
+    sizes = SIZES[:1] if args.quick else SIZES
+    warm_up_jax()
+    t0 = time.perf_counter()
+    rows = []
+    print(f"{'particles':>9} {'grid':>9} {'sub/call':>8} {'first s':>8} {'compile s':>9} "
+          f"{'steady s':>9} {'cpu s':>6} {'ms/substep':>10} {'particle-substeps/s':>20}")
+    for cells, frames in sizes:
+        r = measure(cells, frames, max(3, args.repeats))
+        rows.append(r)
+        print(f"{r['n_particles']:>9} {r['grid_shape'][0]:>4}x{r['grid_shape'][1]:<4} "
+              f"{r['substeps_per_call']:>8} {r['first_call_s']:>8.2f} {r['compile_s']:>9.2f} "
+              f"{r['median_s']:>9.3f} {r['cpu_median_s']:>6.2f} {r['time_per_substep_ms']:>10.3f} "
+              f"{fmt_rate(r['steady_particle_substeps_per_s']):>20}", flush=True)
+    total = time.perf_counter() - t0
+    print(f"total benchmark time {total:.1f} s")
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    png = RESULTS_DIR / "mpm_throughput.png"
+    plot(rows, png)
+    path = write_json("mpm_throughput.json", {
+        "benchmark": "mpm_throughput",
+        "description": "column_collapse sand scene (4 ppc, friction floor), jitted "
+                       "MPM.rollout_full; compile_s = first call - median steady call",
+        "dtype": str(jax.numpy.asarray(0.0).dtype),
+        "repeats": max(3, args.repeats),
+        "total_wall_s": total,
+        "results": rows,
+        "plot": str(png.name),
+    }, machine)
+    print(f"wrote {path} and {png}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,263 @@
+"""Tests of diffgns.dataset: HDF5 layout, resume, metadata statistics, GNS npz import."""
+from __future__ import annotations
+
+import json
+
+import h5py
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgns.dataset import (
+    DatasetWriter,
+    finite_difference_velocity,
+    iter_dataset,
+    load_dataset,
+    load_gns_npz,
+    metadata_path,
+    read_metadata,
+    write_gns_npz,
+)
+from diffgns.trajectory import FLUID, SAND, Trajectory
+
+DT = 0.0025
+BOUNDS = ((0.0, 1.0), (0.0, 0.5))
+
+
+def make_traj(seed: int = 0, n_frames: int = 6, n_particles: int = 5) -> Trajectory:
+    """Random float32-representable trajectory, so HDF5 round trips are exact."""
+    rng = np.random.default_rng(seed)
+    pos = rng.random((n_frames, n_particles, 2)).astype(np.float32)
+    vel = rng.normal(size=(n_frames, n_particles, 2)).astype(np.float32)
+    ptype = np.where(np.arange(n_particles) % 2 == 0, SAND, FLUID).astype(np.int32)
+    mat = rng.random(n_particles).astype(np.float32)
+    return Trajectory(positions=jnp.asarray(pos), velocities=jnp.asarray(vel),
+                      particle_type=jnp.asarray(ptype), material=jnp.asarray(mat),
+                      frame_dt=DT, bounds=BOUNDS)
+
+
+def constant_acceleration_traj(n_frames: int = 8, n_particles: int = 4) -> tuple:
+    """Positions with exactly constant per-frame velocity increments (frame units)."""
+    acc = np.array([0.25, -0.5])  # m / frame^2, exact in binary
+    v0 = np.array([0.5, 1.0])
+    k = np.arange(n_frames)[:, None, None]
+    x0 = np.arange(n_particles)[None, :, None] * np.array([1.0, 2.0])
+    pos = x0 + v0 * k + 0.5 * acc * k * (k - 1)  # x_k - x_{k-1} = v0 + acc (k - 1)
+    traj = Trajectory(positions=jnp.asarray(pos, dtype=jnp.float32),
+                      velocities=jnp.zeros(pos.shape), particle_type=jnp.full(n_particles, SAND),
+                      material=jnp.zeros(n_particles), frame_dt=DT,
+                      bounds=((0.0, 64.0), (0.0, 64.0)))
+    return traj, pos, acc
+
+
+def assert_same(a: Trajectory, b: Trajectory) -> None:
+    np.testing.assert_array_equal(np.asarray(a.positions), np.asarray(b.positions))
+    np.testing.assert_array_equal(np.asarray(a.velocities), np.asarray(b.velocities))
+    np.testing.assert_array_equal(np.asarray(a.particle_type), np.asarray(b.particle_type))
+    np.testing.assert_array_equal(np.asarray(a.material), np.asarray(b.material))
+    assert a.frame_dt == b.frame_dt
+    assert a.bounds == b.bounds
+
+
+def test_hdf5_round_trip_is_exact(tmp_path):
+    path = tmp_path / "train.h5"
+    trajs = [make_traj(0), make_traj(1, n_frames=4, n_particles=7)]
+    with DatasetWriter(path) as w:
+        keys = [w.append(t, attrs={"seed": i, "scene": {"name": "column"}})
+                for i, t in enumerate(trajs)]
+        assert keys == ["00000", "00001"]
+        assert len(w) == 2 and w.keys() == keys and w.has("00001") and not w.has("00002")
+    loaded = load_dataset(path)
+    assert len(loaded) == 2
+    for a, b in zip(trajs, loaded, strict=True):
+        assert_same(a, b)
+    assert [t.n_particles for t in iter_dataset(path)] == [5, 7]
+    with h5py.File(path, "r") as f:
+        grp = f["00001"]
+        assert grp["position"].dtype == np.float32 and grp["particle_type"].dtype == np.int32
+        assert grp.attrs["seed"] == 1
+        assert json.loads(grp.attrs["scene"]) == {"name": "column"}
+        np.testing.assert_array_equal(grp.attrs["bounds"], np.asarray(BOUNDS))
+
+
+def test_resume_keeps_groups_and_continues_keys(tmp_path):
+    path = tmp_path / "data.h5"
+    with DatasetWriter(path, metadata_extra={"scene": "collapse"}) as w:
+        w.append(make_traj(0))
+        w.append(make_traj(1))
+    with DatasetWriter(path) as w:  # reopened in append mode
+        assert w.keys() == ["00000", "00001"]
+        assert w.append(make_traj(2)) == "00002"
+        w.write("00005", make_traj(5))  # explicit key, as resumable generation does
+        assert w.append(make_traj(6)) == "00006"
+        w.write("00001", make_traj(7))  # rewriting a key replaces it
+        assert w.metadata_extra == {"scene": "collapse"}
+        meta = w.finalize(connectivity_radius=0.03)
+    assert meta["scene"] == "collapse" and meta["n_trajectories"] == 5
+    loaded = load_dataset(path)
+    for traj, seed in zip(loaded, [0, 7, 2, 5, 6], strict=True):
+        assert_same(traj, make_traj(seed))
+
+
+def test_interrupted_write_is_discarded(tmp_path):
+    path = tmp_path / "data.h5"
+    with DatasetWriter(path) as w:
+        w.append(make_traj(0))
+    with h5py.File(path, "a") as f:  # simulate a crash in the middle of a write
+        f.create_group("_incomplete_00001").create_dataset("position", data=np.zeros((2, 2, 2)))
+    assert len(load_dataset(path)) == 1
+    with DatasetWriter(path) as w:
+        assert w.keys() == ["00000"]
+        assert w.append(make_traj(1)) == "00001"
+    with h5py.File(path, "r") as f:
+        assert sorted(f.keys()) == ["00000", "00001"]
+
+
+def test_metadata_statistics_constant_acceleration(tmp_path):
+    traj, pos, acc = constant_acceleration_traj()
+    path = tmp_path / "const.h5"
+    with DatasetWriter(path, metadata_extra={"gravity": -9.81}) as w:
+        w.append(traj)
+        w.append(traj)
+        meta = w.finalize(connectivity_radius=0.015)
+    assert metadata_path(path) == tmp_path / "const.metadata.json"
+    on_disk = json.loads(metadata_path(path).read_text())
+    assert on_disk == meta == read_metadata(path) == read_metadata(metadata_path(path))
+    np.testing.assert_allclose(meta["acc_mean"], acc, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(meta["acc_std"], [0.0, 0.0], rtol=0, atol=1e-12)
+    vel = np.diff(pos, axis=0).reshape(-1, 2)
+    np.testing.assert_allclose(meta["vel_mean"], vel.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(meta["vel_std"], vel.std(0), rtol=1e-12)
+    assert meta["dt"] == DT and meta["dim"] == 2 and meta["gravity"] == -9.81
+    assert meta["default_connectivity_radius"] == 0.015
+    assert meta["bounds"] == [[0.0, 64.0], [0.0, 64.0]]
+    assert meta["sequence_length"] == [8, 8] and meta["n_particles"] == [4, 4]
+    assert meta["n_trajectories"] == 2
+
+
+def test_metadata_statistics_pooled_over_trajectories(tmp_path):
+    trajs = [make_traj(0, n_frames=6, n_particles=5), make_traj(3, n_frames=9, n_particles=3)]
+    with DatasetWriter(tmp_path / "d.h5") as w:
+        for t in trajs:
+            w.append(t)
+        meta = w.finalize(connectivity_radius=0.1)
+    pos = [np.asarray(t.positions, dtype=np.float64) for t in trajs]
+    vel = [np.diff(p, axis=0) for p in pos]
+    acc = np.concatenate([np.diff(v, axis=0).reshape(-1, 2) for v in vel])
+    vel = np.concatenate([v.reshape(-1, 2) for v in vel])
+    for key, ref in [("vel_mean", vel.mean(0)), ("vel_std", vel.std(0)),
+                     ("acc_mean", acc.mean(0)), ("acc_std", acc.std(0))]:
+        np.testing.assert_allclose(meta[key], ref, rtol=1e-5, atol=1e-7, err_msg=key)
+        assert len(meta[key]) == 2
+
+
+def test_writer_rejects_bad_input(tmp_path):
+    with pytest.raises(ValueError, match="dt"):
+        DatasetWriter(tmp_path / "x.h5", metadata_extra={"dt": 1.0})
+    bad = make_traj(0).replace(material=jnp.zeros(3))
+    with DatasetWriter(tmp_path / "y.h5") as w:
+        with pytest.raises(ValueError, match="material"):
+            w.append(bad)
+        with pytest.raises(ValueError, match="no trajectories"):
+            w.finalize(0.1)
+        assert len(w) == 0
+
+
+@pytest.mark.parametrize(
+    ("mutate", "field"),
+    [
+        (lambda g: g.__delitem__("position"), "position"),
+        (lambda g: (g.__delitem__("position"), g.create_dataset("position", data=np.zeros((4, 2)))),
+         "position"),
+        (lambda g: (g.__delitem__("velocity"),
+                    g.create_dataset("velocity", data=np.zeros((6, 5, 3)))), "velocity"),
+        (lambda g: g.__delitem__("particle_type"), "particle_type"),
+        (lambda g: (g.__delitem__("material_property"),
+                    g.create_dataset("material_property", data=np.zeros(2))), "material_property"),
+        (lambda g: g.attrs.__delitem__("frame_dt"), "frame_dt"),
+    ],
+)
+def test_invalid_file_errors_name_group_and_field(tmp_path, mutate, field):
+    path = tmp_path / "bad.h5"
+    with DatasetWriter(path) as w:
+        w.append(make_traj(0))
+        w.append(make_traj(1))
+    with h5py.File(path, "a") as f:
+        mutate(f["00001"])
+    with pytest.raises(ValueError, match=rf"group '00001'.*'{field}'"):
+        load_dataset(path)
+
+
+def test_lagrangebench_style_file_without_velocity(tmp_path):
+    """Only position and particle_type per group, dt and bounds in metadata.json."""
+    pos = np.cumsum(np.full((5, 3, 2), 0.01), axis=0)
+    path = tmp_path / "train.h5"
+    with h5py.File(path, "w") as f:
+        grp = f.create_group("00000")
+        grp.create_dataset("position", data=pos)
+        grp.create_dataset("particle_type", data=np.zeros(3, dtype=np.int32))
+    (tmp_path / "metadata.json").write_text(json.dumps({"dt": 0.01, "bounds": [[0, 1], [0, 2]]}))
+    (traj,) = load_dataset(path)
+    np.testing.assert_allclose(np.asarray(traj.velocities), 1.0, rtol=1e-5)
+    assert traj.frame_dt == 0.01 and traj.bounds == ((0.0, 1.0), (0.0, 2.0))
+    np.testing.assert_array_equal(np.asarray(traj.material), 0.0)
+
+
+def test_finite_difference_velocity():
+    pos = np.array([0.0, 1.0, 3.0, 6.0])[:, None, None] * np.ones((1, 2, 2))
+    vel = finite_difference_velocity(pos, 0.5)
+    np.testing.assert_array_equal(vel[:, 0, 0], [2.0, 2.0, 4.0, 6.0])
+    np.testing.assert_array_equal(finite_difference_velocity(pos[:1], 0.5), 0.0)
+
+
+def test_gns_npz_round_trip(tmp_path):
+    trajs = [make_traj(0), make_traj(1, n_frames=3, n_particles=4)]
+    path = write_gns_npz(tmp_path / "train.npz", trajs, connectivity_radius=0.02)
+    loaded, meta = load_gns_npz(path)
+    assert meta["dt"] == DT and meta["default_connectivity_radius"] == 0.02
+    assert len(loaded) == 2
+    for a, b in zip(trajs, loaded, strict=True):
+        np.testing.assert_array_equal(np.asarray(a.positions), np.asarray(b.positions))
+        np.testing.assert_array_equal(np.asarray(a.particle_type), np.asarray(b.particle_type))
+        np.testing.assert_array_equal(np.asarray(a.material), np.asarray(b.material))
+        assert b.frame_dt == DT and b.bounds == BOUNDS
+        ref = finite_difference_velocity(np.asarray(a.positions), DT)
+        np.testing.assert_allclose(np.asarray(b.velocities), ref, rtol=1e-6)
+
+
+def test_gns_npz_pytorch_style_tuples(tmp_path):
+    """Entries saved as plain tuples (scalar material, no material) and a default dt."""
+    pos = np.linspace(0, 1, 4 * 3 * 2).reshape(4, 3, 2)
+    entry_a = np.empty(3, dtype=object)
+    entry_a[:] = [pos, np.full(3, SAND), 0.7]
+    entry_b = np.empty(2, dtype=object)
+    entry_b[:] = [pos[:, :2], np.full(2, FLUID)]
+    np.savez(tmp_path / "valid.npz", a=entry_a, b=entry_b)
+    (tmp_path / "meta.json").write_text(json.dumps({"bounds": [[0, 1], [0, 1]]}))
+    with pytest.warns(UserWarning, match="dt"):
+        trajs, _ = load_gns_npz(tmp_path / "valid.npz", tmp_path / "meta.json")
+    np.testing.assert_allclose(np.asarray(trajs[0].material), 0.7)
+    np.testing.assert_array_equal(np.asarray(trajs[1].material), 0.0)
+    assert trajs[0].frame_dt == Trajectory.__dataclass_fields__["frame_dt"].default
+
+
+def test_gns_npz_errors(tmp_path):
+    write_gns_npz(tmp_path / "x.npz", [make_traj(0)], write_metadata=False)
+    with pytest.raises(FileNotFoundError, match="metadata"):
+        load_gns_npz(tmp_path / "x.npz")
+    (tmp_path / "metadata.json").write_text(json.dumps({"dt": 0.1}))
+    with pytest.raises(ValueError, match="bounds"):
+        load_gns_npz(tmp_path / "x.npz")
+    (tmp_path / "metadata.json").write_text(json.dumps({"dt": 0.1, "bounds": [[0, 1], [0, 1]]}))
+    entry = np.empty(2, dtype=object)
+    entry[:] = [np.zeros((3, 4, 3)), np.zeros(4)]
+    np.savez(tmp_path / "x.npz", traj3d=entry)
+    with pytest.raises(ValueError, match=r"'traj3d'.*d=3"):
+        load_gns_npz(tmp_path / "x.npz")
+    entry[:] = [np.zeros((3, 4, 2)), np.zeros(5)]
+    np.savez(tmp_path / "x.npz", wrongtype=entry)
+    with pytest.raises(ValueError, match=r"'wrongtype'.*particle_type"):
+        load_gns_npz(tmp_path / "x.npz")
+    np.savez(tmp_path / "x.npz", plain=np.zeros((3, 4, 2)))
+    with pytest.raises(ValueError, match=r"'plain'.*tuple"):
+        load_gns_npz(tmp_path / "x.npz")
