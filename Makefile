@@ -4,9 +4,9 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-OUT ?= results/demo
+OUT ?= results/inverse
 
-.PHONY: demo test test-slow bench lint venv
+.PHONY: demo collapse test test-slow bench lint venv
 
 $(VENV)/.installed-%: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -17,7 +17,10 @@ $(VENV)/.installed-%: pyproject.toml
 venv: $(VENV)/.installed-test
 
 demo: $(VENV)/.installed-test
-	$(PY) examples/column_collapse_demo.py --out $(OUT)
+	$(PY) examples/column_collapse_inverse.py --out $(OUT)
+
+collapse: $(VENV)/.installed-test
+	$(PY) examples/column_collapse_demo.py --out results/demo
 
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks
@@ -30,3 +33,4 @@ bench: $(VENV)/.installed-bench $(VENV)/.installed-test
 	$(PY) benchmarks/mpm_throughput.py
 	$(PY) benchmarks/mpm_vs_taichi.py
 	$(PY) benchmarks/mpm_effects.py
+	$(PY) benchmarks/mpm_grad_memory.py

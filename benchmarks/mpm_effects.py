@@ -71,8 +71,8 @@ def plot(rows: dict, path):
     fig, ax = plt.subplots(figsize=(8, 4))
     bars = ax.bar(names, us, yerr=[err_lo, err_hi], capsize=4,
                   color=["tab:gray", "tab:olive", "tab:orange", "tab:red", "tab:blue"])
-    for b, r in zip(bars, rel):
-        ax.annotate(f"x{r:.2f}", (b.get_x() + b.get_width() / 2, b.get_height()),
+    for b, r, hi in zip(bars, rel, err_hi):
+        ax.annotate(f"x{r:.2f}", (b.get_x() + b.get_width() / 2, b.get_height() + hi),
                     ha="center", va="bottom", fontsize=9, xytext=(0, 3),
                     textcoords="offset points")
     n = next(iter(rows.values()))["n_particles"]

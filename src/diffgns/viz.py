@@ -275,3 +275,29 @@ def write_vtk(
         group.addFile(filepath=written, sim_time=t * float(traj.frame_dt))
     group.save()
     return [*paths, out_dir / f"{prefix}.pvd"]
+
+
+def plot_convergence(result, path: str | Path, truth: dict | None = None) -> Path:
+    """Parameters and loss per iteration of an inverse run (``InverseResult``).
+
+    One panel per parameter (with the true value dashed, if given) and a log-scale loss panel.
+    """
+    names = list(result.history[0]["theta"])
+    fig = _new_figure((4.0 * (len(names) + 1), 3.2))
+    axes = np.atleast_1d(fig.subplots(1, len(names) + 1))
+    it = result.series("iteration")
+    for ax, name in zip(axes, names):
+        ax.plot(it, result.series("theta", name), "o-")
+        if truth and name in truth:
+            ax.axhline(truth[name], ls="--", color="k", label="target")
+            ax.legend(fontsize=8)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(name)
+    loss = np.maximum(result.series("loss"), 1e-30)
+    axes[-1].semilogy(it, loss, "o-", color="C3")
+    axes[-1].set_xlabel("iteration")
+    axes[-1].set_ylabel("loss")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path

@@ -83,7 +83,7 @@ def _svd_fwd_closed(F: jax.Array):
     theta = (a2 - a1) / 2
     phi = (a2 + a1) / 2
     U = rotation(jnp.cos(phi), jnp.sin(phi))
-    V = rotation(jnp.cos(theta), jnp.sin(theta))
+    V = rotation(jnp.cos(theta), -jnp.sin(theta))  # F = Rot(phi) diag(s) Rot(theta)
     return U, s, V
 
 
