@@ -1,0 +1,211 @@
+"""Node and edge features, normalisation statistics and training noise for the particle GNS.
+
+Units: positions in m (the dataset's position unit); time in **frames**, so a velocity is a
+displacement per frame (m/frame) and an acceleration a displacement per frame^2 (m/frame^2),
+as in the dataset metadata (``vel_mean``/``vel_std``, ``acc_mean``/``acc_std``).
+
+A *history* is the array of the last ``C + 1`` positions of every particle, shape
+``(N, C + 1, 2)``, oldest first; ``history[:, -1]`` is the current position. Its ``C``
+finite differences are the input velocities.
+
+Node features (:func:`node_features`), in this order along the last axis:
+
+1. the ``C`` velocities, normalised with the velocity :class:`Normalizer`, flattened
+   (``2 C`` columns, time-major: ``v_0x, v_0y, v_1x, ...``);
+2. the distances of the current position to the 4 walls ``(x - xmin, y - ymin, xmax - x,
+   ymax - y)`` divided by the radius ``R`` and clipped to ``[-1, 1]`` (4 columns);
+3. optionally the raw material feature ``tan(phi)`` (1 column, not normalised).
+
+The particle type is not a feature here: the network embeds it. Absolute position never
+enters except through the clipped wall distances.
+
+Edge features (:func:`edge_features`): ``(x_sender - x_receiver) / R`` and its norm,
+``(E, 3)``, zero on masked edges; the norm uses a safe square root (finite gradient at 0,
+needed for self-edges).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from ..trajectory import KINEMATIC
+
+__all__ = [
+    "Normalizer", "Normalizers", "combine_std", "edge_features", "node_features",
+    "n_node_features", "random_walk_noise", "target_acceleration", "velocities",
+    "wall_distances",
+]
+
+
+def combine_std(std_data, sigma: float) -> jax.Array:
+    """``sqrt(std_data^2 + sigma^2)``: a data std widened by the training noise ``sigma``."""
+    std_data = jnp.asarray(std_data, dtype=jnp.result_type(float))
+    return jnp.sqrt(std_data**2 + sigma**2)
+
+
+@struct.dataclass
+class Normalizer:
+    """Affine normaliser ``(x - mean) / std``; ``mean``, ``std`` broadcast against ``x``.
+
+    Attributes:
+        mean: (D,) array, in the units of the quantity (e.g. m/frame).
+        std: (D,) array, same units, > 0.
+    """
+
+    mean: jax.Array
+    std: jax.Array
+
+    def normalize(self, x: jax.Array) -> jax.Array:
+        return (x - self.mean) / self.std
+
+    def denormalize(self, y: jax.Array) -> jax.Array:
+        return y * self.std + self.mean
+
+    @classmethod
+    def identity(cls, dim: int = 2) -> Normalizer:
+        return cls(jnp.zeros((dim,)), jnp.ones((dim,)))
+
+
+@struct.dataclass
+class Normalizers:
+    """Velocity (m/frame) and acceleration (m/frame^2) normalisers of a GNS."""
+
+    velocity: Normalizer
+    acceleration: Normalizer
+
+    @classmethod
+    def from_metadata(cls, meta: dict, noise_std: float = 0.0) -> Normalizers:
+        """Build from a metadata dict with ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``.
+
+        The random-walk noise ``noise_std`` (m) is folded into both stds,
+        ``std = sqrt(std_data^2 + noise_std^2)``, as in the reference GNS.
+        """
+        missing = [k for k in ("vel_mean", "vel_std", "acc_mean", "acc_std") if k not in meta]
+        if missing:
+            raise KeyError(f"metadata lacks {missing}; compute the dataset statistics first")
+        f = jnp.result_type(float)
+        return cls(
+            velocity=Normalizer(jnp.asarray(meta["vel_mean"], f),
+                                combine_std(meta["vel_std"], noise_std)),
+            acceleration=Normalizer(jnp.asarray(meta["acc_mean"], f),
+                                    combine_std(meta["acc_std"], noise_std)),
+        )
+
+    @classmethod
+    def identity(cls, dim: int = 2) -> Normalizers:
+        return cls(Normalizer.identity(dim), Normalizer.identity(dim))
+
+
+def velocities(history: jax.Array) -> jax.Array:
+    """(N, C+1, 2) positions -> (N, C, 2) velocities in m/frame (finite differences)."""
+    return history[:, 1:] - history[:, :-1]
+
+
+def wall_distances(x: jax.Array, bounds, radius: float) -> jax.Array:
+    """(N, 2) positions -> (N, 4) ``(x - xmin, y - ymin, xmax - x, ymax - y) / R`` in [-1, 1]."""
+    lower = jnp.asarray([b[0] for b in bounds], dtype=x.dtype)
+    upper = jnp.asarray([b[1] for b in bounds], dtype=x.dtype)
+    d = jnp.concatenate([x - lower, upper - x], axis=-1) / radius
+    return jnp.clip(d, -1.0, 1.0)
+
+
+def n_node_features(history: int = 5, use_material: bool = True) -> int:
+    """Width F of :func:`node_features`: ``2 C + 4 (+ 1)``."""
+    return 2 * history + 4 + int(use_material)
+
+
+def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Normalizer,
+                  material: jax.Array | None = None) -> jax.Array:
+    """Node features of a position history.
+
+    Args:
+        history: (N, C+1, 2) positions in m, oldest first.
+        bounds: ``((xmin, xmax), (ymin, ymax))`` in m.
+        radius: connectivity radius R in m.
+        vel_normalizer: velocity normaliser (m/frame).
+        material: optional (N,) raw material feature (tan of the friction angle).
+
+    Returns:
+        (N, 2C + 4 [+ 1]) features (see the module docstring for the order).
+    """
+    n = history.shape[0]
+    vel = vel_normalizer.normalize(velocities(history)).reshape(n, -1)
+    parts = [vel, wall_distances(history[:, -1], bounds, radius)]
+    if material is not None:
+        parts.append(jnp.broadcast_to(jnp.asarray(material, history.dtype), (n,))[:, None])
+    return jnp.concatenate(parts, axis=-1)
+
+
+def _safe_norm(d: jax.Array) -> jax.Array:
+    """Euclidean norm over the last axis with a finite (zero) gradient at 0."""
+    r2 = jnp.sum(d * d, axis=-1, keepdims=True)
+    pos = r2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
+
+
+def edge_features(x: jax.Array, senders: jax.Array, receivers: jax.Array, mask: jax.Array,
+                  radius: float) -> jax.Array:
+    """(E, 3) edge features ``[(x_s - x_r)/R, |x_s - x_r|/R]``, zero where ``mask`` is False.
+
+    ``x`` is (N, 2) in m; ``senders``/``receivers`` (E,) int may hold the padding index N.
+    """
+    xs = jnp.take(x, senders, axis=0, mode="clip")
+    xr = jnp.take(x, receivers, axis=0, mode="clip")
+    d = (xs - xr) / radius
+    feats = jnp.concatenate([d, _safe_norm(d)], axis=-1)
+    return jnp.where(mask[:, None], feats, 0.0)
+
+
+def random_walk_noise(key: jax.Array, position_sequence: jax.Array, sigma: float,
+                      particle_type: jax.Array | None = None) -> jax.Array:
+    """Random-walk noise for an input position sequence (reference GNS training noise).
+
+    Each of the ``C`` input velocities gets i.i.d. Gaussian noise of std ``sigma / sqrt(C)``;
+    the velocity noise is cumulated in time to a position noise, with zero noise on the
+    oldest position, so the noise on the last (current) position has std ``sigma``.
+    Kinematic particles (type 3) get no noise when ``particle_type`` is given.
+
+    Args:
+        key: PRNG key.
+        position_sequence: (N, C+1, 2) input positions (only shape and dtype are used).
+        sigma: noise scale in m.
+        particle_type: optional (N,) int types.
+
+    Returns:
+        (N, C+1, 2) position noise to *add* to the inputs. Use :func:`target_acceleration`
+        to correct the training target for the noise on the last position.
+    """
+    n, cp1, dim = position_sequence.shape
+    c = cp1 - 1
+    vel_noise = jax.random.normal(key, (n, c, dim), position_sequence.dtype) * (sigma / c**0.5)
+    pos_noise = jnp.concatenate(
+        [jnp.zeros((n, 1, dim), vel_noise.dtype), jnp.cumsum(vel_noise, axis=1)], axis=1)
+    if particle_type is not None:
+        pos_noise = jnp.where((particle_type == KINEMATIC)[:, None, None], 0.0, pos_noise)
+    return pos_noise
+
+
+def target_acceleration(next_position: jax.Array, history: jax.Array,
+                        noise: jax.Array | None = None) -> jax.Array:
+    """Training target acceleration (m/frame^2), corrected for input noise.
+
+    With noisy inputs ``h~ = history + noise``, the target next position is moved by the
+    same noise as the last input, ``x~_{t+1} = x_{t+1} + noise[:, -1]``, so the target
+    velocity ``x~_{t+1} - x~_t`` is the clean one and the target acceleration is
+    ``a = x~_{t+1} - 2 x~_t + x~_{t-1}``: the model learns to undo the noise on the last
+    input velocity, and a rollout with this acceleration (semi-implicit Euler) lands on the
+    clean next position.
+
+    Args:
+        next_position: (N, 2) clean position at t+1, in m.
+        history: (N, C+1, 2) clean input positions, in m.
+        noise: optional (N, C+1, 2) noise added to the inputs (:func:`random_walk_noise`).
+
+    Returns:
+        (N, 2) target acceleration in m/frame^2 (not normalised).
+    """
+    if noise is not None:
+        history = history + noise
+        next_position = next_position + noise[:, -1]
+    return next_position - 2.0 * history[:, -1] + history[:, -2]
