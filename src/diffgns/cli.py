@@ -44,10 +44,56 @@ def _dataset(args) -> int:
     if args.kind == "column":
         path = generate_columns(args.out, args.aspect_ratios, args.friction_angles, args.frames,
                                 width=args.width, cells_across=args.cells_across,
-                                batch=args.batch)
+                                batch=args.batch, domain_length=args.domain_length,
+                                domain_height=args.domain_height)
     else:
-        path = generate_squares(args.out, args.n, args.frames, seed=args.seed, dx=args.dx)
+        kw = dict(dx=args.dx, size=args.size,
+                  friction_angle=(min(args.friction_angles), max(args.friction_angles)))
+        if args.domain_length and args.domain_height:
+            kw["domain"] = ((0.0, args.domain_length), (0.0, args.domain_height))
+        path = generate_squares(args.out, args.n, args.frames, seed=args.seed, **kw)
     print(f"dataset written to {path}")
+    return 0
+
+
+def _train(args) -> int:
+    from .graph.train_loop import train
+    from .graph.training import TrainConfig
+
+    tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                       lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
+                       push_forward=args.push_forward, momentum_weight=args.momentum_weight,
+                       seed=args.seed, validate_every=args.validate_every,
+                       checkpoint_every=args.checkpoint_every)
+    gns_kw = dict(radius=args.radius, latent=args.latent, mp_steps=args.mp_steps,
+                  mlp_layers=args.mlp_layers, noise_std=args.noise_std,
+                  attention=args.attention)
+    train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
+          frame_stride=args.frame_stride)
+    print(f"model written to {args.out}/model")
+    return 0
+
+
+def _rollout(args) -> int:
+    from .graph.data import load_trajectories
+    from .graph.evaluate import rollout_reference, score
+    from .graph.train_loop import load_model
+    from .viz import animate
+
+    gns, params, info = load_model(args.model)
+    refs, _ = load_trajectories(args.data, info.get("factor", 1), info.get("frame_stride", 1))
+    ref = refs[args.index]
+    pred, sec = rollout_reference(gns, params, ref)
+    s = score(pred, ref, start=gns.config.history)
+    s["rollout_s"] = sec
+    print(json.dumps(s, indent=2))
+    if args.out:
+        from pathlib import Path
+
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
+        (Path(args.out) / "rollout_metrics.json").write_text(json.dumps(s, indent=2))
+        print(f"animation written to {args.out}/rollout.gif")
     return 0
 
 
@@ -77,11 +123,45 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--friction-angles", type=float, nargs="+", default=[25.0, 35.0, 45.0])
     d.add_argument("--width", type=float, default=0.1)
     d.add_argument("--cells-across", type=int, default=10)
+    d.add_argument("--domain-length", type=float, default=None, help="fixed box length, m")
+    d.add_argument("--domain-height", type=float, default=None, help="fixed box height, m")
     d.add_argument("--batch", type=int, default=4, help="friction angles rolled out together")
     d.add_argument("--n", type=int, default=10, help="number of square-flow trajectories")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--dx", type=float, default=0.02)
+    d.add_argument("--dx", type=float, default=0.02, help="cell size of square flows, m")
+    d.add_argument("--size", type=float, default=0.2, help="side of the squares, m")
     d.set_defaults(func=_dataset)
+
+    t = sub.add_parser("train", help="train a GNS on HDF5 / .npz datasets (resumable)")
+    t.add_argument("--data", nargs="+", required=True, help="training datasets (.h5 or .npz)")
+    t.add_argument("--valid", default=None, help="validation dataset for rollouts")
+    t.add_argument("--out", required=True, help="run folder (checkpoint, logs, model/)")
+    t.add_argument("--steps", type=int, default=20000)
+    t.add_argument("--batch-size", type=int, default=2)
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--lr-final", type=float, default=1e-5)
+    t.add_argument("--lr-decay-steps", type=int, default=None)
+    t.add_argument("--radius", type=float, default=0.015, help="connectivity radius, m")
+    t.add_argument("--latent", type=int, default=128)
+    t.add_argument("--mp-steps", type=int, default=10)
+    t.add_argument("--mlp-layers", type=int, default=2)
+    t.add_argument("--noise-std", type=float, default=6.7e-4, help="random-walk noise, m")
+    t.add_argument("--attention", action="store_true")
+    t.add_argument("--coarse-grain", type=int, default=1, help="MPM particles per GNS node")
+    t.add_argument("--frame-stride", type=int, default=1, help="MPM frames per GNS frame")
+    t.add_argument("--push-forward", type=int, default=0)
+    t.add_argument("--momentum-weight", type=float, default=0.0)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--validate-every", type=int, default=2000)
+    t.add_argument("--checkpoint-every", type=int, default=500)
+    t.set_defaults(func=_train)
+
+    r = sub.add_parser("rollout", help="roll a trained GNS out against a reference trajectory")
+    r.add_argument("--model", required=True, help="model folder (params.msgpack, config.json)")
+    r.add_argument("--data", required=True, help="dataset with reference trajectories")
+    r.add_argument("--index", type=int, default=0)
+    r.add_argument("--out", default=None, help="folder for the MPM-vs-GNS animation")
+    r.set_defaults(func=_rollout)
     return p
 
 

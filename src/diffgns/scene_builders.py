@@ -24,6 +24,7 @@ def column_collapse(
     cohesion: float = 0.0,
     floor_mu: float = 0.5,
     domain_length: float | None = None,
+    domain_height: float | None = None,
     frame_dt: float = 2.5e-3,
     **scene_kw,
 ) -> Scene:
@@ -32,7 +33,8 @@ def column_collapse(
 
     The floor is Coulomb-frictional (``floor_mu``), the left wall is slip (the symmetry
     plane of a symmetric collapse), the others slip. The domain is long enough for the
-    runout of Lube et al. (2005) plus a margin, unless ``domain_length`` is given.
+    runout of Lube et al. (2005) plus a margin, unless ``domain_length`` is given (a fixed
+    ``domain_length`` and ``domain_height`` give every aspect ratio the same box).
     ``dx`` defaults to ``width / cells_across``.
     """
     if not (width > 0 and aspect_ratio > 0):
@@ -45,7 +47,10 @@ def column_collapse(
         runout = width * (1 + max(1.2 * a, 1.9 * a ** (2 / 3)))
         domain_length = 1.4 * runout + 4 * dx
     nx = math.ceil(domain_length / dx)
-    ny = math.ceil((height * 1.1 + 2 * dx) / dx)
+    ny = math.ceil(((height * 1.1 + 2 * dx) if domain_height is None else domain_height) / dx)
+    if ny * dx < height:
+        raise SceneError(f"column_collapse: domain_height {domain_height} is below the column "
+                         f"height {height}")
     # put the column on the lattice of the grid
     w_cells, h_cells = round(width / dx), round(height / dx)
     if abs(w_cells * dx - width) > 1e-9 or abs(h_cells * dx - height) > 1e-9:

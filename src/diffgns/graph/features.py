@@ -124,7 +124,8 @@ def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Nor
         bounds: ``((xmin, xmax), (ymin, ymax))`` in m.
         radius: connectivity radius R in m.
         vel_normalizer: velocity normaliser (m/frame).
-        material: optional (N,) raw material feature (tan of the friction angle).
+        material: optional (N,) or scalar raw material feature (tan of the friction angle);
+            a scalar is broadcast to all particles (as in the inverse problems).
 
     Returns:
         (N, 2C + 4 [+ 1]) features (see the module docstring for the order).

@@ -1,0 +1,605 @@
+"""Inference cost of one GNS step: diffgns (JAX) vs a PyTorch/PyG GNS written here.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/gns_vs_torch.py [--repeats 12]
+
+Problem (shared by both sides, float32): a 45 x 45 block of particles (N = 2025) on a
+square lattice of spacing h = R / 2.5 with R = 0.015 m, slightly jittered, in the
+reference sand box ``[0.1, 0.9]^2``; a 6-frame position history (5 velocities) from a
+small random walk; particle type 6 except the bottom row (type 3, kinematic); material
+tan(30 deg). With R = 2.5 h an interior particle has 21 neighbours including itself
+(|i|^2 + |j|^2 < 6.25); the block's border brings the mean to ~20 (the actual edge
+count is measured and reported).
+
+Architecture (both sides, the reference GNS): 16-wide type embedding over 9 types; node
+features = 5 normalised velocities + 4 clipped wall distances / R + raw tan(phi); edge
+features = (x_s - x_r) / R and its norm, self-edges included; encoder MLPs, ``mp_steps``
+interaction steps with separate weights (edge MLP on [e, v_r, v_s], sum at the receiver,
+node MLP on [v, agg], residual node and edge updates), decoder; every MLP has 2 hidden
+layers of ``latent`` with ReLU and a LayerNorm after it except the decoder; identity
+normalisers; semi-implicit Euler in frame units, kinematic particles held.
+
+(a) diffgns: ``GNS(GNSConfig(latent, mp_steps, mlp_layers=2, radius=R, bounds),
+    Normalizers.identity())``.  *step* = jitted ``gns.step`` (jax-md cell-list neighbour
+    update at the current positions + features + network + Euler), *network* = jitted
+    ``gns.acceleration`` on precomputed (capacity-padded) edges.
+(b) torch: ``torch_geometric.nn.MessagePassing(aggr="add")`` interaction networks in the
+    computation pattern of the reference PyTorch GNS (the first edge-MLP layer acts on the
+    concatenation [e, x_i, x_j], no split), ``torch.no_grad()``, ``set_num_threads(2)``.
+    *step* = radius graph + features + network + Euler, *forward* = features + network on a
+    precomputed ``edge_index``. The radius graph: torch_geometric's ``radius_graph`` needs
+    pyg-lib or torch_cluster; when neither is importable (the case on the development
+    machine) it is built with ``torch.cdist`` (exact, non-matmul mode) + ``< R`` threshold
+    + ``nonzero``, and the JSON says which was used.
+
+Both models are checked to compute the same function: the flax parameters are copied into
+the torch model and the accelerations compared (they agree to float32 round-off).
+
+Timing: after warm-up, ``--repeats`` rounds; each round times one call of every measured
+function, the two implementations interleaved and the order alternated round by round, so
+both see the same background load. Medians, min/max, raw samples, per-round paired ratios
+and the load average are stored. JAX compile time = first call - median steady call.
+If diffgns misses the target (step <= 0.5 x torch step at the reference config), or with
+``--profile always``, the reference config is profiled: neighbour update, features, encoder,
+processor steps, decoder, single-kernel timings of one interaction step (matmuls, gathers,
+LayerNorm, segment_sum, masking), and whole-network variants (same weights, same result)
+on receiver-sorted, mask-free and compact (unpadded) edge lists, timed interleaved.
+Writes ``benchmarks/results/gns_vs_torch.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import time
+
+import numpy as np
+from _common import block, machine_info, summary, timed, warm_up_jax, write_json
+
+RADIUS = 0.015
+SPACING = RADIUS / 2.5
+SIDE = 45
+BOUNDS = ((0.1, 0.9), (0.1, 0.9))
+HISTORY = 5
+N_TYPES = 9
+TYPE_EMBED = 16
+MLP_LAYERS = 2
+SAND, KINEMATIC = 6, 3
+TAN_PHI = math.tan(math.radians(30.0))
+LN_EPS = 1e-6  # flax LayerNorm default; used on the torch side too so outputs match
+CONFIGS = {"reference": (128, 10), "small": (64, 5)}
+TARGET_RATIO = 0.5
+
+
+# ============================================================================ scene
+def make_scene(seed: int = 0):
+    """(history (N, 6, 2) float32, particle_type (N,) int32, material (N,) float32)."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(SIDE) * SPACING
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    x0 = np.stack([gx.ravel(), gy.ravel()], axis=1) + BOUNDS[0][0] + 0.5 * SPACING
+    x0 = x0 + rng.uniform(-0.02, 0.02, x0.shape) * SPACING  # far from the R thresholds
+    steps = rng.normal(0.0, 2e-5, (x0.shape[0], HISTORY, 2))  # ~h / 300 per frame
+    walk = np.concatenate([np.zeros((x0.shape[0], 1, 2)), np.cumsum(steps, axis=1)], axis=1)
+    history = (x0[:, None, :] + walk - walk[:, -1:]).astype(np.float32)  # current = x0
+    ptype = np.full(x0.shape[0], SAND, np.int32)
+    ptype[np.isclose(gy.ravel(), 0.0)] = KINEMATIC
+    material = np.full(x0.shape[0], TAN_PHI, np.float32)
+    return history, ptype, material
+
+
+# ============================================================================ torch
+def torch_radius_graph(torch, x, radius: float):
+    """(2, E) ``edge_index`` (row 0 = source/sender, row 1 = target/receiver) of all pairs
+    with ``|x_s - x_r| < radius``, self-loops included, and the method used."""
+    try:
+        from torch_geometric.nn import radius_graph
+
+        ei = radius_graph(x, r=radius, loop=True, max_num_neighbors=128)
+        return ei, "torch_geometric.radius_graph"
+    except ImportError:
+        pass
+    d = torch.cdist(x, x, compute_mode="donot_use_mm_for_euclid_dist")
+    recv, send = torch.nonzero(d < radius, as_tuple=True)
+    return torch.stack([send, recv]), "torch.cdist + threshold (no pyg-lib / torch_cluster)"
+
+
+def build_torch_gns(latent: int, mp_steps: int):
+    """A PyG GNS with the reference PyTorch GNS's computation pattern (random init)."""
+    import torch
+    from torch import nn
+    from torch_geometric.nn import MessagePassing
+
+    def mlp(n_in: int, n_out: int, layer_norm: bool = True) -> nn.Sequential:
+        layers: list[nn.Module] = []
+        width = n_in
+        for _ in range(MLP_LAYERS):
+            layers += [nn.Linear(width, latent), nn.ReLU()]
+            width = latent
+        layers.append(nn.Linear(width, n_out))
+        if layer_norm:
+            layers.append(nn.LayerNorm(n_out, eps=LN_EPS))
+        return nn.Sequential(*layers)
+
+    class Interaction(MessagePassing):
+        """Edge MLP on cat[e, x_i, x_j] -> summed at the receiver -> node MLP on
+        cat[x, agg]; returns the residual-updated node *and* edge latents."""
+
+        def __init__(self):
+            super().__init__(aggr="add")
+            self.edge_fn = mlp(3 * latent, latent)
+            self.node_fn = mlp(2 * latent, latent)
+
+        def forward(self, x, edge_index, e):
+            dx, de = self.propagate(edge_index, x=x, e=e)
+            return x + dx, e + de
+
+        def message(self, x_i, x_j, e):
+            return self.edge_fn(torch.cat([e, x_i, x_j], dim=-1))
+
+        def aggregate(self, inputs, index, ptr=None, dim_size=None):
+            # keep the messages: they are the new edge latents (the reference GNS bug
+            # returned the *input* edge features here instead)
+            return super().aggregate(inputs, index, ptr=ptr, dim_size=dim_size), inputs
+
+        def update(self, aggr_out, x):
+            agg, msg = aggr_out
+            return self.node_fn(torch.cat([x, agg], dim=-1)), msg
+
+    n_node_features = 2 * HISTORY + 4 + 1
+
+    class TorchGNS(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.embed = nn.Embedding(N_TYPES, TYPE_EMBED)
+            self.node_encoder = mlp(n_node_features + TYPE_EMBED, latent)
+            self.edge_encoder = mlp(3, latent)
+            self.processor = nn.ModuleList(Interaction() for _ in range(mp_steps))
+            self.decoder = mlp(latent, 2, layer_norm=False)
+            self.register_buffer("lower", torch.tensor([b[0] for b in BOUNDS]))
+            self.register_buffer("upper", torch.tensor([b[1] for b in BOUNDS]))
+            for name in ("vel", "acc"):  # identity normalisers, applied all the same
+                self.register_buffer(f"{name}_mean", torch.zeros(2))
+                self.register_buffer(f"{name}_std", torch.ones(2))
+
+        def features(self, history, material, edge_index):
+            n = history.shape[0]
+            x = history[:, -1]
+            vel = (history[:, 1:] - history[:, :-1] - self.vel_mean) / self.vel_std
+            walls = torch.clamp(torch.cat([x - self.lower, self.upper - x], -1) / RADIUS,
+                                -1.0, 1.0)
+            nf = torch.cat([vel.reshape(n, -1), walls, material[:, None]], dim=-1)
+            d = (x[edge_index[0]] - x[edge_index[1]]) / RADIUS
+            ef = torch.cat([d, torch.linalg.vector_norm(d, dim=-1, keepdim=True)], dim=-1)
+            return nf, ef
+
+        def forward(self, history, particle_type, material, edge_index):
+            """(N, 2) acceleration in m/frame^2 (features + network + denormalise)."""
+            nf, ef = self.features(history, material, edge_index)
+            v = self.node_encoder(torch.cat([nf, self.embed(particle_type)], dim=-1))
+            e = self.edge_encoder(ef)
+            for layer in self.processor:
+                v, e = layer(v, edge_index, e)
+            return self.decoder(v) * self.acc_std + self.acc_mean
+
+        def step(self, history, particle_type, material):
+            """Radius graph at the current positions + forward + semi-implicit Euler."""
+            x = history[:, -1]
+            edge_index, _ = torch_radius_graph(torch, x, RADIUS)
+            acc = self.forward(history, particle_type, material, edge_index)
+            x_next = x + (x - history[:, -2]) + acc
+            x_next = torch.where((particle_type == KINEMATIC)[:, None], x, x_next)
+            return x_next, edge_index
+
+    return TorchGNS().eval()
+
+
+def load_flax_params(model, params: dict) -> None:
+    """Copy diffgns' flax params into :func:`build_torch_gns`'s model (same function).
+
+    The split first edge layer (``edge``, ``sender``, ``receiver`` kernels) becomes one
+    Linear on cat[e, x_i, x_j] = cat[e, v_receiver, v_sender].
+    """
+    import torch
+
+    p = params["params"]
+
+    def t(a):
+        return torch.from_numpy(np.array(a, dtype=np.float32))
+
+    def linear(layer, kernel, bias):
+        layer.weight.copy_(t(kernel).T)
+        layer.bias.copy_(t(bias))
+
+    def norm(layer, q):
+        layer.weight.copy_(t(q["scale"]))
+        layer.bias.copy_(t(q["bias"]))
+
+    def seq(module, q, first=0):
+        linears = [m for m in module if isinstance(m, torch.nn.Linear)]
+        names = [f"hidden_{i}" for i in range(MLP_LAYERS)] + ["out"]
+        for lin, nm in zip(linears[first:], names[first:]):
+            linear(lin, q[nm]["kernel"], q[nm]["bias"])
+        if isinstance(module[-1], torch.nn.LayerNorm):
+            norm(module[-1], q["norm"])
+
+    with torch.no_grad():
+        model.embed.weight.copy_(t(p["type_embed"]["embedding"]))
+        seq(model.node_encoder, p["node_encoder"])
+        seq(model.edge_encoder, p["edge_encoder"])
+        seq(model.decoder, p["decoder"])
+        for k, layer in enumerate(model.processor):
+            q = p[f"processor_{k}"]
+            split = q["edge_in"]
+            kernel = np.concatenate([split[nm]["kernel"] for nm in
+                                     ("edge", "receiver", "sender")], axis=0)
+            linear(layer.edge_fn[0], kernel, split["edge"]["bias"])
+            rest = q["edge_mlp"]  # hidden_0 .. out of the remaining MLP_LAYERS - 1 layers
+            lins = [m for m in layer.edge_fn if isinstance(m, torch.nn.Linear)][1:]
+            names = [f"hidden_{i}" for i in range(MLP_LAYERS - 1)] + ["out"]
+            for lin, nm in zip(lins, names):
+                linear(lin, rest[nm]["kernel"], rest[nm]["bias"])
+            norm(layer.edge_fn[-1], rest["norm"])
+            seq(layer.node_fn, q["node_mlp"])
+
+
+# ============================================================================ helpers
+def median_of(fn, repeats: int, sync=block) -> dict:
+    sync(fn())
+    runs = [timed(fn, sync)[:2] for _ in range(repeats)]
+    return summary([w for w, _ in runs], [c for _, c in runs])
+
+
+def mac_counts(latent: int, mp_steps: int, n: int, e_torch: int, e_jax: int) -> dict:
+    """Multiply-accumulates of the dense layers (dominant cost) of each implementation."""
+    L, h = latent, MLP_LAYERS - 1
+    f_node = 2 * HISTORY + 4 + 1 + TYPE_EMBED
+    node_enc = n * (f_node * L + h * L * L + L * L)
+    edge_enc = 3 * L + h * L * L + L * L  # per edge
+    enc_t, enc_j = node_enc + e_torch * edge_enc, node_enc + e_jax * edge_enc
+    node_mlp = n * (2 * L * L + h * L * L + L * L)
+    dec = n * (L * L + h * L * L + 2 * L)
+    torch_proc = mp_steps * (e_torch * (3 * L * L + h * L * L + L * L) + node_mlp)
+    jax_proc = mp_steps * (e_jax * (L * L + h * L * L + L * L) + 2 * n * L * L + node_mlp)
+    return {"torch_gmac": (enc_t + torch_proc + dec) / 1e9,
+            "diffgns_gmac": (enc_j + jax_proc + dec) / 1e9}
+
+
+# ============================================================================ main
+def run_config(name, latent, mp_steps, scene, args, torch, jax, jnp):
+    from diffgns.graph.features import Normalizers
+    from diffgns.graph.gns import GNS, GNSConfig
+    from diffgns.graph.neighbors import capacity, did_overflow, edges
+
+    history_np, ptype_np, material_np = scene
+    n = history_np.shape[0]
+    load_before = list(os.getloadavg())
+    gns = GNS(GNSConfig(latent=latent, mp_steps=mp_steps, mlp_layers=MLP_LAYERS,
+                        radius=RADIUS, bounds=BOUNDS), Normalizers.identity())
+    history, ptype, material = (jnp.asarray(a) for a in scene)
+    params = gns.init(jax.random.PRNGKey(0), (history, ptype, material))
+    nbrs = gns.allocate(history[:, -1])
+    senders, receivers, mask = edges(nbrs, n)
+    n_valid = int(np.asarray(mask).sum())
+
+    step_jit = jax.jit(gns.step)
+    net_jit = jax.jit(gns.acceleration)
+    jax_step = lambda: step_jit(params, history, ptype, material, nbrs)
+    jax_net = lambda: net_jit(params, history, ptype, material, senders, receivers, mask)
+    w_step, _, (x_next_jax, nbrs_out) = timed(jax_step)
+    w_net, _, acc_jax = timed(jax_net)
+    if bool(did_overflow(nbrs_out)):
+        raise RuntimeError("neighbour list overflowed in the benchmark step")
+
+    model = build_torch_gns(latent, mp_steps)
+    th, tp, tm = (torch.from_numpy(a) for a in (history_np, ptype_np.astype(np.int64),
+                                                 material_np))
+    edge_index, graph_method = torch_radius_graph(torch, th[:, -1], RADIUS)
+    jax_set = set(zip(np.asarray(senders)[np.asarray(mask)].tolist(),
+                      np.asarray(receivers)[np.asarray(mask)].tolist()))
+    torch_set = set(zip(edge_index[0].tolist(), edge_index[1].tolist()))
+
+    equivalence: dict = {}
+    try:
+        load_flax_params(model, params)
+        with torch.no_grad():
+            acc_t = model(th, tp, tm, edge_index).numpy()
+            x_next_t = model.step(th, tp, tm)[0].numpy()
+        scale = float(np.abs(np.asarray(acc_jax)).max())
+        equivalence = {
+            "params_copied": True,
+            "max_abs_diff_acceleration": float(np.abs(acc_t - np.asarray(acc_jax)).max()),
+            "max_abs_acceleration": scale,
+            "max_abs_diff_next_position": float(
+                np.abs(x_next_t - np.asarray(x_next_jax)).max()),
+        }
+        equivalence["same_function"] = equivalence["max_abs_diff_acceleration"] <= 1e-4 * max(
+            scale, 1.0)
+    except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as err:
+        equivalence = {"params_copied": False, "reason": repr(err)}
+
+    def torch_sync(out):
+        return out
+
+    def torch_step():
+        with torch.no_grad():
+            return model.step(th, tp, tm)
+
+    def torch_fwd():
+        with torch.no_grad():
+            return model(th, tp, tm, edge_index)
+
+    for _ in range(args.warmup):
+        block(jax_step())
+        block(jax_net())
+        torch_step()
+        torch_fwd()
+
+    pairs = {"step": (jax_step, torch_step), "network": (jax_net, torch_fwd)}
+    walls = {f"{impl}_{part}": [] for impl in ("diffgns", "torch") for part in pairs}
+    cpus = {k: [] for k in walls}
+    for r in range(args.repeats):
+        for part, (fj, ft) in pairs.items():
+            order = [("diffgns", fj, block), ("torch", ft, torch_sync)]
+            if r % 2:
+                order.reverse()
+            for impl, fn, sync in order:
+                w, c, _ = timed(fn, sync)
+                walls[f"{impl}_{part}"].append(w)
+                cpus[f"{impl}_{part}"].append(c)
+    timings = {k: summary(walls[k], cpus[k]) for k in walls}
+    timings["diffgns_step"]["first_call_s"] = w_step
+    timings["diffgns_step"]["compile_s"] = max(0.0, w_step - timings["diffgns_step"]["median_s"])
+    timings["diffgns_network"]["first_call_s"] = w_net
+    timings["diffgns_network"]["compile_s"] = max(
+        0.0, w_net - timings["diffgns_network"]["median_s"])
+    ratios = {}
+    for part in pairs:
+        a, b = walls[f"diffgns_{part}"], walls[f"torch_{part}"]
+        ratios[part] = {
+            "ratio_of_medians": statistics.median(a) / statistics.median(b),
+            "median_paired_ratio": statistics.median(x / y for x, y in zip(a, b)),
+        }
+    return {
+        "latent": latent, "mp_steps": mp_steps, "mlp_layers": MLP_LAYERS,
+        "n_particles": n,
+        "edges_incl_self": n_valid,
+        "mean_neighbours_incl_self": n_valid / n,
+        "diffgns_edge_slots_incl_self": int(senders.shape[0]),
+        "diffgns_capacity_no_self": capacity(nbrs),
+        "torch_edges": int(edge_index.shape[1]),
+        "edge_sets_equal": jax_set == torch_set,
+        "torch_graph_method": graph_method,
+        "equivalence": equivalence,
+        "macs": mac_counts(latent, mp_steps, n, int(edge_index.shape[1]),
+                           int(senders.shape[0])),
+        "timings": timings,
+        "ratios": ratios,
+        "loadavg_before": load_before,
+        "loadavg_after": list(os.getloadavg()),
+        "_objects": (gns, params, history, ptype, material, nbrs, model, th, tp, tm,
+                     edge_index),
+    }
+
+
+def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
+    """Where diffgns' step time goes (reference config); every entry a median in ms."""
+    import flax.linen as nn
+
+    from diffgns.graph.neighbors import edges
+    from diffgns.graph.networks import MLP, InteractionStep
+
+    gns, params, history, ptype, material, nbrs, model, th, tp, tm, edge_index = res["_objects"]
+    cfg = gns.config
+    n, L = history.shape[0], cfg.latent
+    p = params["params"]
+    s, r, m = edges(nbrs, n)
+    out: dict = {"note": "medians in ms of separately jitted pieces; pieces fuse differently "
+                         "inside the whole step, so they need not add up exactly"}
+
+    def ms(fn):
+        return 1e3 * median_of(fn, repeats)["median_s"]
+
+    # -- step decomposition
+    nb_fn = jax.jit(lambda x, nb: edges(gns.neighbors.update(x, nb), n))
+    out["neighbour_update_and_edges"] = ms(lambda: nb_fn(history[:, -1], nbrs))
+    feat_fn = jax.jit(gns.features)
+    out["features"] = ms(lambda: feat_fn(history, material, s, r, m))
+    nf, ef = feat_fn(history, material, s, r, m)
+    net_fn = jax.jit(gns.network.apply)
+    out["network_apply"] = ms(lambda: net_fn(params, nf, ptype, ef, s, r, m))
+
+    def enc(nf, ef):
+        emb = jnp.take(p["type_embed"]["embedding"], ptype, axis=0)
+        v = MLP(L, cfg.mlp_layers, L).apply({"params": p["node_encoder"]},
+                                           jnp.concatenate([nf, emb], -1))
+        e = MLP(L, cfg.mlp_layers, L).apply({"params": p["edge_encoder"]}, ef)
+        return v, jnp.where(m[:, None], e, 0.0)
+
+    enc_fn = jax.jit(enc)
+    out["encoder"] = ms(lambda: enc_fn(nf, ef))
+    v, e = enc_fn(nf, ef)
+    ist = InteractionStep(L, cfg.mlp_layers, cfg.attention)
+    proc_fn = jax.jit(lambda q, v, e, s, r, m: ist.apply({"params": q}, v, e, s, r, m))
+    one = ms(lambda: proc_fn(p["processor_0"], v, e, s, r, m))
+    out["one_interaction_step"] = one
+    out["processor_estimate_mp_steps_x_one"] = one * cfg.mp_steps
+    dec_fn = jax.jit(lambda v: MLP(L, cfg.mlp_layers, 2, layer_norm=False).apply(
+        {"params": p["decoder"]}, v))
+    out["decoder"] = ms(lambda: dec_fn(v))
+
+    # -- kernels of one interaction step (padded edge count, as in the step)
+    q = p["processor_0"]
+    ein = q["edge_in"]
+    h = jnp.ones_like(e)
+
+    kern = {}
+    f = jax.jit(lambda e: jax.nn.relu(e @ ein["edge"]["kernel"] + ein["edge"]["bias"]))
+    kern["edge_dense_ExLxL_relu (x3 per step)"] = ms(lambda: f(e))
+    f = jax.jit(lambda v: (v @ ein["sender"]["kernel"], v @ ein["receiver"]["kernel"]))
+    kern["node_projections_2xNxLxL"] = ms(lambda: f(v))
+    f = jax.jit(lambda a, b: jnp.take(a, s, axis=0, mode="clip")
+                + jnp.take(b, r, axis=0, mode="clip"))
+    kern["two_gathers_N_to_E_plus_add"] = ms(lambda: f(v, v))
+    ln = nn.LayerNorm()
+    lnp = ln.init(jax.random.PRNGKey(0), h[:2])
+    f = jax.jit(lambda x: ln.apply(lnp, x))
+    kern["layernorm_E"] = ms(lambda: f(h))
+    f = jax.jit(lambda x: jax.ops.segment_sum(x, r, num_segments=n))
+    kern["segment_sum_E_to_N"] = ms(lambda: f(h))
+    f = jax.jit(lambda x, y: (jnp.where(m[:, None], x, 0.0), jnp.where(m[:, None], y + x, 0.0)))
+    kern["masking_wheres_and_residual_E"] = ms(lambda: f(h, e))
+    f = jax.jit(lambda v, a: MLP(L, cfg.mlp_layers, L).apply(
+        {"params": q["node_mlp"]}, jnp.concatenate([v, a], -1)))
+    kern["node_mlp_N"] = ms(lambda: f(v, v))
+    order = np.argsort(np.asarray(r), kind="stable")
+    r_sorted = jnp.asarray(np.asarray(r)[order])
+    f = jax.jit(lambda x: jax.ops.segment_sum(x, r_sorted, num_segments=n,
+                                              indices_are_sorted=True))
+    kern["segment_sum_E_to_N_sorted_indices"] = ms(lambda: f(h))
+    out["kernels_one_step_ms"] = kern
+
+    # -- whole-network variants without touching src/ (same math, different edge layout),
+    # graphs closed over as constants, timed interleaved round by round
+    sn, rn, mn = (np.asarray(a) for a in (s, r, m))
+    cs, cr = sn[mn], rn[mn]
+    o_pad = np.argsort(rn, kind="stable")  # padding (index N) stays at the end
+    o_cmp = np.lexsort((cs, cr))
+    graphs = {
+        "padded_as_in_step (capacity x1.25 + self)": (sn, rn, mn),
+        "padded_sorted_by_receiver": (sn[o_pad], rn[o_pad], mn[o_pad]),
+        "padded_mask_free (const all-true mask; padding dropped by segment_sum)":
+            (sn, rn, np.ones_like(mn)),
+        "compact_valid_edges_only": (cs, cr, np.ones(cs.shape[0], bool)),
+        "compact_sorted_by_receiver": (cs[o_cmp], cr[o_cmp], np.ones(cs.shape[0], bool)),
+    }
+
+    def variant(g):
+        gs, gr, gm = (jnp.asarray(a) for a in g)
+        f = jax.jit(lambda prm, hist: gns.acceleration(prm, hist, ptype, material, gs, gr, gm))
+        return lambda: f(params, history)
+
+    fns = {k: variant(g) for k, g in graphs.items()}
+    ref_out = np.asarray(next(iter(fns.values()))())
+    dev = {k: float(np.abs(np.asarray(fn()) - ref_out).max()) for k, fn in fns.items()}
+    samples = {k: [] for k in fns}
+    for i in range(repeats):
+        names = list(fns) if i % 2 == 0 else list(fns)[::-1]
+        for k in names:
+            samples[k].append(timed(fns[k])[0])
+    out["network_variants_ms"] = {k: 1e3 * statistics.median(v) for k, v in samples.items()}
+    out["network_variants_max_abs_dev_from_padded"] = dev
+    out["edge_slots"] = {"padded": int(s.shape[0]), "valid": int(cs.shape[0])}
+
+    # -- torch side, for comparison
+    def tgraph():
+        return torch_radius_graph(torch, th[:, -1], RADIUS)[0]
+
+    out["torch_radius_graph"] = ms_torch(tgraph, repeats)
+    return out
+
+
+def ms_torch(fn, repeats):
+    return 1e3 * median_of(fn, repeats, sync=lambda o: o)["median_s"]
+
+
+def print_table(results: dict) -> None:
+    head = (f"{'config':<20} {'part':<8} {'diffgns ms':>11} {'torch ms':>9} "
+            f"{'ratio':>6} {'paired':>7} {'cpu ratio':>9} {'JAX compile s':>14}")
+    print(head)
+    print("-" * len(head))
+    for name, res in results.items():
+        label = f"{name} L{res['latent']}/MP{res['mp_steps']}"
+        for part in ("step", "network"):
+            tj = res["timings"][f"diffgns_{part}"]
+            tt = res["timings"][f"torch_{part}"]
+            rr = res["ratios"][part]
+            print(f"{label:<20} {part:<8} {1e3 * tj['median_s']:>11.1f} "
+                  f"{1e3 * tt['median_s']:>9.1f} {rr['ratio_of_medians']:>6.2f} "
+                  f"{rr['median_paired_ratio']:>7.2f} "
+                  f"{tj['cpu_median_s'] / tt['cpu_median_s']:>9.2f} {tj['compile_s']:>14.2f}")
+    for name, res in results.items():
+        print(f"{name}: N={res['n_particles']}, edges incl. self={res['edges_incl_self']} "
+              f"(mean {res['mean_neighbours_incl_self']:.2f}/particle; diffgns slots "
+              f"{res['diffgns_edge_slots_incl_self']}), torch edges={res['torch_edges']}, "
+              f"same edge set={res['edge_sets_equal']}, same function="
+              f"{res['equivalence'].get('same_function')}, load "
+              f"{res['loadavg_before'][0]:.2f}->{res['loadavg_after'][0]:.2f}")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=12, help="timed rounds (>= 10)")
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    ap.add_argument("--profile", choices=("auto", "always", "never"), default="auto",
+                    help="profile diffgns at the reference config (auto: if it misses)")
+    ap.add_argument("--profile-repeats", type=int, default=7)
+    ap.add_argument("--out", default="gns_vs_torch.json")
+    args = ap.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+    import torch
+
+    torch.set_num_threads(2)
+    machine = machine_info()
+    machine["torch"] = torch.__version__
+    machine["torch_threads"] = torch.get_num_threads()
+    try:
+        import torch_geometric
+
+        machine["torch_geometric"] = torch_geometric.__version__
+    except ImportError:  # pragma: no cover
+        machine["torch_geometric"] = None
+    warm_up_jax()
+
+    scene = make_scene()
+    results = {}
+    t0 = time.perf_counter()
+    for name in args.configs:
+        latent, mp_steps = CONFIGS[name]
+        results[name] = run_config(name, latent, mp_steps, scene, args, torch, jax, jnp)
+
+    profile = None
+    ref = results.get("reference")
+    missed = ref is not None and ref["ratios"]["step"]["ratio_of_medians"] > TARGET_RATIO
+    if args.profile == "always" or (args.profile == "auto" and missed):
+        prof_name = "reference" if ref is not None else args.configs[0]
+        profile = {"config": prof_name, **profile_diffgns(
+            results[prof_name], args.profile_repeats, torch, jax, jnp)}
+
+    for res in results.values():
+        res.pop("_objects")
+    print_table(results)
+    if ref is not None:
+        print(f"target diffgns step <= {TARGET_RATIO} x torch step (reference): "
+              f"{'met' if not missed else 'MISSED'} "
+              f"({ref['ratios']['step']['ratio_of_medians']:.2f})")
+    if profile is not None:
+        print(f"diffgns profile ({profile['config']} config, ms):")
+        for k, val in profile.items():
+            if isinstance(val, dict):
+                for kk, vv in val.items():
+                    fmt = ".1e" if k.endswith("_from_padded") else ".1f"
+                    print(f"  {k}: {kk}: {vv:{fmt}}" if isinstance(vv, float)
+                          else f"  {k}: {kk}: {vv}")
+            elif isinstance(val, float):
+                print(f"  {k}: {val:.1f}")
+    payload = {
+        "benchmark": "gns_vs_torch",
+        "description": __doc__.split("\n\n")[2].strip(),
+        "scene": {"radius_m": RADIUS, "lattice_spacing_m": SPACING, "side": SIDE,
+                  "bounds": BOUNDS, "history_velocities": HISTORY, "n_types": N_TYPES,
+                  "type_embed": TYPE_EMBED, "material": "tan(30 deg)"},
+        "repeats": args.repeats, "warmup": args.warmup, "target_ratio": TARGET_RATIO,
+        "target_met": (not missed) if ref is not None else None,
+        "configs": results, "profile": profile,
+        "wall_time_s": time.perf_counter() - t0,
+    }
+    path = write_json(args.out, payload, machine)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

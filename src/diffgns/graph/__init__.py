@@ -1,0 +1,18 @@
+"""Learned simulators on graphs: neighbour lists, features, networks and the particle GNS."""
+from .features import (
+    Normalizer,
+    Normalizers,
+    edge_features,
+    node_features,
+    random_walk_noise,
+    target_acceleration,
+)
+from .gns import GNS, GNSConfig
+from .neighbors import NeighborBuilder, did_overflow, edges, update_or_reallocate
+from .networks import MLP, EncodeProcessDecode, init_params
+
+__all__ = [
+    "GNS", "GNSConfig", "MLP", "EncodeProcessDecode", "NeighborBuilder", "Normalizer",
+    "Normalizers", "did_overflow", "edge_features", "edges", "init_params", "node_features",
+    "random_walk_noise", "target_acceleration", "update_or_reallocate",
+]

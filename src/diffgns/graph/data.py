@@ -1,0 +1,119 @@
+"""Training data for the GNS: windows of trajectories, frame stride, coarse-graining.
+
+A training sample is a window of ``history + 2`` consecutive (strided) frames of one
+trajectory: ``history + 1`` input positions and the next position as target. Trajectories
+with the same number of nodes form a group; a batch holds windows of one group, so every
+jitted training step sees one of a few static shapes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..dataset import iter_dataset, load_gns_npz, read_metadata
+from ..trajectory import Trajectory
+
+
+def coarse_grain_map(x0: np.ndarray, factor: int) -> np.ndarray:
+    """Cluster index (N,) of each particle: particles are binned on a square lattice whose
+    cells hold ~``factor`` particles of the initial configuration ``x0`` (N, 2). factor = 1
+    keeps every particle."""
+    if factor == 1:
+        return np.arange(len(x0))
+    probe = np.random.default_rng(0).choice(len(x0), min(len(x0), 256), replace=False)
+    d2 = ((x0[probe, None] - x0[None]) ** 2).sum(-1)
+    d2[np.arange(len(probe)), probe] = np.inf
+    d = np.sqrt(d2.min(1))  # nearest-neighbour spacing of a sample of particles
+    spacing = float(np.median(d)) * np.sqrt(factor)
+    cell = np.floor((x0 - x0.min(0)) / spacing + 1e-6).astype(np.int64)
+    _, idx = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
+    return idx
+
+
+def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajectory:
+    """Nodes = cluster means of ``factor`` particles; frames every ``frame_stride``-th."""
+    pos = np.asarray(traj.positions)[::frame_stride]
+    vel = np.asarray(traj.velocities)[::frame_stride]
+    ptype = np.asarray(traj.particle_type)
+    mat = np.asarray(traj.material)
+    if factor > 1:
+        cid = coarse_grain_map(pos[0], factor)
+        n = cid.max() + 1
+        count = np.bincount(cid, minlength=n)
+
+        def mean(a):
+            out = np.zeros((*a.shape[:-2], n, a.shape[-1]), a.dtype)
+            np.add.at(out, (..., cid, slice(None)), a)
+            return out / count[:, None]
+
+        pos, vel = mean(pos), mean(vel)
+        first = np.zeros(n, np.int64)
+        first[cid[::-1]] = np.arange(len(cid))[::-1]
+        ptype, mat = ptype[first], mat[first]
+    return Trajectory(positions=pos, velocities=vel, particle_type=ptype, material=mat,
+                      frame_dt=traj.frame_dt * frame_stride, bounds=traj.bounds)
+
+
+def load_trajectories(path: str | Path, factor: int = 1, frame_stride: int = 1
+                      ) -> tuple[list[Trajectory], dict]:
+    """Trajectories and metadata from an HDF5 dataset or a PyTorch-GNS ``.npz``."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        trajs, meta = load_gns_npz(path)
+    else:
+        trajs, meta = list(iter_dataset(path)), read_metadata(path)
+    trajs = [coarse_grain(t, factor, frame_stride) for t in trajs]
+    return trajs, meta
+
+
+def frame_statistics(trajs: list[Trajectory]) -> dict:
+    """Velocity and acceleration mean/std in frame units (displacement per frame) over
+    ``trajs`` (after striding and coarse-graining, so they match what the GNS sees)."""
+    vs, acs = [], []
+    for t in trajs:
+        x = np.asarray(t.positions, np.float64)
+        v = np.diff(x, axis=0)
+        vs.append(v.reshape(-1, 2))
+        acs.append(np.diff(v, axis=0).reshape(-1, 2))
+    v, a = np.concatenate(vs), np.concatenate(acs)
+    return dict(vel_mean=v.mean(0).tolist(), vel_std=v.std(0).tolist(),
+                acc_mean=a.mean(0).tolist(), acc_std=a.std(0).tolist())
+
+
+@dataclass
+class WindowSampler:
+    """Random windows of ``history + 2 + unroll`` frames, one node-count group per batch."""
+
+    trajs: list
+    history: int = 5
+    unroll: int = 0
+
+    def __post_init__(self):
+        self.groups: dict[int, list[int]] = {}
+        for i, t in enumerate(self.trajs):
+            self.groups.setdefault(t.n_particles, []).append(i)
+        self.length = self.history + 2 + self.unroll
+        for t in self.trajs:
+            if t.n_frames < self.length:
+                raise ValueError(f"a trajectory has {t.n_frames} frames, fewer than the window "
+                                 f"{self.length}")
+        sizes = np.array([sum(self.trajs[i].n_frames - self.length + 1 for i in g)
+                          for g in self.groups.values()], float)
+        self._p = sizes / sizes.sum()
+        self._keys = list(self.groups)
+
+    def sample(self, rng: np.random.Generator, batch: int) -> dict:
+        """A batch: positions (B, L, N, 2), particle_type (B, N), material (B, N)."""
+        n = self._keys[rng.choice(len(self._keys), p=self._p)]
+        members = self.groups[n]
+        pos, ptype, mat = [], [], []
+        for _ in range(batch):
+            t = self.trajs[members[rng.integers(len(members))]]
+            s = rng.integers(0, t.n_frames - self.length + 1)
+            pos.append(np.asarray(t.positions[s:s + self.length]))
+            ptype.append(np.asarray(t.particle_type))
+            mat.append(np.asarray(t.material))
+        return dict(positions=np.stack(pos), particle_type=np.stack(ptype),
+                    material=np.stack(mat))

@@ -1,0 +1,143 @@
+"""The training run: data, neighbour lists per node count, progress, logs, checkpoints,
+validation rollouts, resume. Used by ``diffgns train``.
+
+Files in ``out_dir``: ``checkpoint.msgpack`` (+ ``.json``: step, configs), ``train_log.csv``
+(step, loss, lr, seconds), ``valid_log.jsonl`` (validation metrics), ``model/`` (the final
+model: ``params.msgpack`` and ``config.json``, loadable with :func:`load_model`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+from tqdm import tqdm
+
+from .data import WindowSampler, frame_statistics, load_trajectories
+from .evaluate import evaluate
+from .features import Normalizers
+from .gns import GNS, GNSConfig
+from .neighbors import capacity
+from .training import TrainConfig, Trainer, load_checkpoint, save_checkpoint, step_rng
+
+
+def save_model(out: Path, gns: GNS, params, info: dict) -> None:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "params.msgpack").write_bytes(serialization.to_bytes(params))
+    norm = dict(vel_mean=gns.normalizer.velocity.mean.tolist(),
+                vel_std=gns.normalizer.velocity.std.tolist(),
+                acc_mean=gns.normalizer.acceleration.mean.tolist(),
+                acc_std=gns.normalizer.acceleration.std.tolist())
+    cfg = dataclasses.asdict(gns.config)
+    (out / "config.json").write_text(json.dumps(dict(gns=cfg, normalizer=norm, **info),
+                                                indent=2, default=str))
+
+
+def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
+    """(GNS, params, info) from a model folder written by :func:`save_model`."""
+    path = Path(path)
+    info = json.loads((path / "config.json").read_text())
+    g = dict(info["gns"])
+    g["bounds"] = tuple(tuple(b) for b in g["bounds"])
+    cfg = GNSConfig(**g)
+    n = info["normalizer"]
+    norm = Normalizers.from_metadata(dict(vel_mean=n["vel_mean"], vel_std=n["vel_std"],
+                                          acc_mean=n["acc_mean"], acc_std=n["acc_std"]), 0.0)
+    gns = GNS(cfg, norm)
+    C = cfg.history
+    template = gns.init(jax.random.PRNGKey(0), (jnp.zeros((2, C + 1, 2)) + 0.5,
+                                                 jnp.zeros(2, jnp.int32), jnp.zeros(2)))
+    params = serialization.from_bytes(template, (path / "params.msgpack").read_bytes())
+    return gns, params, info
+
+
+def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
+    """Load training data and build the GNS whose normaliser matches it."""
+    trajs = []
+    for p in train_paths:
+        trajs += load_trajectories(p, factor, frame_stride)[0]
+    stats = frame_statistics(trajs)
+    bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
+    cfg = GNSConfig(bounds=bounds, **gns_kw)
+    return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std)), trajs, stats
+
+
+def _union_bounds(trajs):
+    b = np.array([t.bounds for t in trajs])
+    return ((float(b[:, 0, 0].min()), float(b[:, 0, 1].max())),
+            (float(b[:, 1, 0].min()), float(b[:, 1, 1].max())))
+
+
+def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
+          factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True):
+    """Train (or resume) a GNS; returns (gns, params, history dict)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    gns, trajs, stats = build(train_paths, dict(gns_kw), factor, frame_stride)
+    valid = load_trajectories(valid_path, factor, frame_stride)[0][:n_valid] if valid_path \
+        else []
+    sampler = WindowSampler(trajs, gns.config.history, tcfg.push_forward)
+    trainer = Trainer(gns, tcfg)
+    C = gns.config.history
+    t0 = trajs[0]
+    params = gns.init(jax.random.PRNGKey(tcfg.seed),
+                      (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
+                       jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
+    opt_state = trainer.opt.init(params)
+    ckpt = out / "checkpoint.msgpack"
+    step = 0
+    if ckpt.exists():
+        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
+        print(f"resumed from {ckpt} at step {step}")
+    info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
+                stats=stats, data=[str(p) for p in train_paths], factor=factor,
+                frame_stride=frame_stride)
+    (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
+    nbrs = {}
+    log = (out / "train_log.csv").open("a")
+    if step == 0:
+        log.write("step,loss,lr,seconds\n")
+    rate = (tcfg.lr_final / tcfg.lr) ** (1.0 / max(tcfg.lr_decay_steps, 1))
+    t_start, losses = time.perf_counter(), []
+    bar = tqdm(total=tcfg.steps, initial=step, desc="train", disable=not progress)
+    while step < tcfg.steps:
+        rng, key = step_rng(tcfg.seed, step)
+        batch = sampler.sample(rng, tcfg.batch_size)
+        n = batch["positions"].shape[2]
+        if n not in nbrs:
+            nbrs[n] = gns.allocate(jnp.asarray(batch["positions"][0, C]))
+        new_params, new_opt, loss, over = trainer.step(params, opt_state, batch, nbrs[n], key)
+        if bool(over):  # redo with a larger list; nothing was applied
+            nbrs[n] = gns.allocate(jnp.asarray(batch["positions"][0, C]),
+                                   extra_capacity=capacity(nbrs[n]) // (2 * n) + 1)
+            continue
+        params, opt_state = new_params, new_opt
+        step += 1
+        losses.append(float(loss))
+        bar.update(1)
+        if step % tcfg.log_every == 0 or step == tcfg.steps:
+            lr = max(tcfg.lr * rate**step, tcfg.lr_final)
+            log.write(f"{step},{np.mean(losses):.6g},{lr:.3g},"
+                      f"{time.perf_counter() - t_start:.1f}\n")
+            log.flush()
+            bar.set_postfix(loss=f"{np.mean(losses):.4f}")
+            losses = []
+        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
+            save_checkpoint(ckpt, params, opt_state, step, info)
+        if valid and (step % tcfg.validate_every == 0 or step == tcfg.steps):
+            res = evaluate(gns, params, valid)
+            with (out / "valid_log.jsonl").open("a") as f:
+                f.write(json.dumps(dict(step=step, **res["mean"])) + "\n")
+            m = res["mean"]
+            bar.write(f"step {step}: valid runout error {m['runout_rel_error']:.3f}, final "
+                      f"position error {m['final_position_error_rel_displacement']:.3f}")
+    bar.close()
+    log.close()
+    save_model(out / "model", gns, params, dict(info, steps=step))
+    return gns, params
