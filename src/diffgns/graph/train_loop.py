@@ -22,8 +22,14 @@ from .data import WindowSampler, frame_statistics, load_trajectories
 from .evaluate import evaluate
 from .features import Normalizers
 from .gns import GNS, GNSConfig
-from .neighbors import capacity
-from .training import TrainConfig, Trainer, load_checkpoint, save_checkpoint, step_rng
+from .training import (
+    TrainConfig,
+    Trainer,
+    load_checkpoint,
+    save_checkpoint,
+    step_rng,
+    step_with_reallocation,
+)
 
 
 def save_model(out: Path, gns: GNS, params, info: dict) -> None:
@@ -109,15 +115,8 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     while step < tcfg.steps:
         rng, key = step_rng(tcfg.seed, step)
         batch = sampler.sample(rng, tcfg.batch_size)
-        n = batch["positions"].shape[2]
-        if n not in nbrs:
-            nbrs[n] = gns.allocate(jnp.asarray(batch["positions"][0, C]))
-        new_params, new_opt, loss, over = trainer.step(params, opt_state, batch, nbrs[n], key)
-        if bool(over):  # redo with a larger list; nothing was applied
-            nbrs[n] = gns.allocate(jnp.asarray(batch["positions"][0, C]),
-                                   extra_capacity=capacity(nbrs[n]) // (2 * n) + 1)
-            continue
-        params, opt_state = new_params, new_opt
+        params, opt_state, loss = step_with_reallocation(trainer, params, opt_state, batch,
+                                                         nbrs, key)
         step += 1
         losses.append(float(loss))
         bar.update(1)

@@ -132,6 +132,26 @@ class Trainer:
         return self._step(params, opt_state, self.shard(batch), nbrs, key)
 
 
+def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbrs: dict, key,
+                           max_retries: int = 6):
+    """:meth:`Trainer.step` that (re)allocates the neighbour list of the batch's node count
+    outside jit and redoes the step on overflow, with growing head-room (edge slots and
+    cell-list slots), so no edge is ever dropped. ``nbrs`` maps node count -> list and is
+    updated in place. Returns (params, opt_state, loss)."""
+    C = trainer.gns.config.history
+    pos = batch["positions"]
+    n = pos.shape[2]
+    for attempt in range(max_retries + 1):
+        if n not in nbrs:
+            nbrs[n] = trainer.gns.allocate(jnp.asarray(pos[0, C]))
+        new_params, new_opt, loss, over = trainer.step(params, opt_state, batch, nbrs[n], key)
+        if not bool(over):
+            return new_params, new_opt, loss
+        extra = (attempt + 1) * max(1, nbrs[n].idx.shape[1] // (2 * n))
+        nbrs[n] = trainer.gns.allocate(jnp.asarray(pos[0, C]), extra_capacity=extra)
+    raise RuntimeError(f"neighbour list overflowing after {max_retries} re-allocations")
+
+
 # ----------------------------------------------------------------------- checkpoints
 def save_checkpoint(path: Path, params, opt_state, step: int, extra: dict) -> None:
     """Atomically write params, optimiser state and step (msgpack) plus a JSON sidecar."""
