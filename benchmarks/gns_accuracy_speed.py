@@ -1,0 +1,115 @@
+"""Accuracy of a trained GNS on held-out column collapses, and its cost per simulated second
+against the MPM (at its stable dt and at the dt = 1e-5 s of the published training data),
+measured in one run on this machine.
+
+    python benchmarks/gns_accuracy_speed.py --model models/gns_columns \
+        --data data/columns_test.h5 --out benchmarks/results/gns_accuracy_speed.json
+
+The reference for accuracy is the MPM trajectory of each test case, coarse-grained and
+strided exactly as the GNS sees it. Timings are steady-state (compile separated), median of
+``--repeats`` runs, with block_until_ready.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from diffgns import MPM
+from diffgns.graph.data import load_trajectories
+from diffgns.graph.evaluate import rollout_reference, score
+from diffgns.graph.train_loop import load_model
+from diffgns.scene_builders import column_collapse
+
+
+def time_mpm(scene, n_frames: int, repeats: int) -> tuple[float, float]:
+    """(compile s, median steady s) of an MPM rollout of n_frames."""
+    sim = MPM(scene)
+    p, s = sim.params(), sim.init_state()
+    t0 = time.perf_counter()
+    jax.block_until_ready(sim.rollout_full(p, s, n_frames=n_frames))
+    first = time.perf_counter() - t0
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(sim.rollout_full(p, s, n_frames=n_frames))
+        ts.append(time.perf_counter() - t0)
+    return first - float(np.median(ts)), float(np.median(ts))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default="models/gns_columns")
+    ap.add_argument("--data", default="data/columns_test.h5")
+    ap.add_argument("--out", default="benchmarks/results/gns_accuracy_speed.json")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--mpm-1e-5-frames", type=int, default=40,
+                    help="frames timed for the dt = 1e-5 s MPM (cost scales linearly)")
+    args = ap.parse_args()
+
+    gns, params, info = load_model(args.model)
+    factor, stride = info.get("factor", 1), info.get("frame_stride", 1)
+    refs, _ = load_trajectories(args.data, factor, stride)
+    attrs = _attrs(args.data)
+    rows = []
+    for ref, at in zip(refs, attrs):
+        pred, sec = rollout_reference(gns, params, ref)
+        ts = [sec]
+        for _ in range(args.repeats - 1):
+            ts.append(rollout_reference(gns, params, ref)[1])
+        row = score(pred, ref, start=gns.config.history)
+        sim_seconds = (ref.n_frames - gns.config.history - 1) * ref.frame_dt
+        row.update(aspect_ratio=at.get("aspect_ratio"), friction_angle=at.get("friction_angle"),
+                   nodes=ref.n_particles, gns_s=float(np.median(ts)),
+                   gns_s_per_sim_s=float(np.median(ts)) / sim_seconds)
+        rows.append(row)
+        print(f"a={row['aspect_ratio']} phi={row['friction_angle']}: runout err "
+              f"{row['runout_rel_error']:.3f}, final pos err/disp "
+              f"{row['final_position_error_rel_displacement']:.3f}, GNS {row['gns_s']:.2f} s",
+              flush=True)
+    # MPM cost per simulated second on the first case's scene
+    meta = json.loads(Path(args.data).with_suffix(".metadata.json").read_text())
+    a, phi = attrs[0]["aspect_ratio"], attrs[0]["friction_angle"]
+    kw = dict(width=meta.get("width", 0.1), aspect_ratio=a, friction_angle=phi,
+              cells_across=meta.get("cells_across", 8), domain_length=0.8, domain_height=0.35)
+    scene = column_collapse(**kw)
+    n = 100
+    c_stable, t_stable = time_mpm(scene, n, args.repeats)
+    scene5 = column_collapse(**kw, dt=1e-5)
+    c5, t5 = time_mpm(scene5, args.mpm_1e_5_frames, max(1, args.repeats - 2))
+    mpm = dict(particles=scene.n_particles, substeps_stable=scene.substeps,
+               substep_dt_stable=scene.substep_dt,
+               stable_s_per_sim_s=t_stable / (n * scene.frame_dt), stable_compile_s=c_stable,
+               dt1e5_s_per_sim_s=t5 / (args.mpm_1e_5_frames * scene.frame_dt),
+               dt1e5_substeps=scene5.substeps, dt1e5_compile_s=c5)
+    gns_cost = float(np.median([r["gns_s_per_sim_s"] for r in rows]))
+    summary = dict(
+        mean_runout_rel_error=float(np.mean([r["runout_rel_error"] for r in rows])),
+        max_runout_rel_error=float(np.max([r["runout_rel_error"] for r in rows])),
+        mean_final_position_error_rel_displacement=float(np.mean(
+            [r["final_position_error_rel_displacement"] for r in rows])),
+        gns_s_per_sim_s=gns_cost,
+        speedup_vs_mpm_stable=mpm["stable_s_per_sim_s"] / gns_cost,
+        speedup_vs_mpm_dt1e5=mpm["dt1e5_s_per_sim_s"] / gns_cost)
+    out = dict(command=" ".join(sys.argv), model=args.model, model_info=info.get("gns"),
+               factor=factor, frame_stride=stride, rows=rows, mpm=mpm, summary=summary,
+               devices=str(jax.devices()), date=time.strftime("%Y-%m-%d %H:%M"))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2, default=float))
+    print(json.dumps(dict(mpm=mpm, summary=summary), indent=2))
+
+
+def _attrs(path):
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return [dict(f[k].attrs) for k in sorted(k for k in f.keys() if k.isdigit())]
+
+
+if __name__ == "__main__":
+    main()
