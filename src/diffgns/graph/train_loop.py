@@ -41,6 +41,7 @@ def save_model(out: Path, gns: GNS, params, info: dict) -> None:
                 acc_mean=gns.normalizer.acceleration.mean.tolist(),
                 acc_std=gns.normalizer.acceleration.std.tolist())
     cfg = dataclasses.asdict(gns.config)
+    info = {k: v for k, v in info.items() if k not in ("gns", "normalizer")}
     (out / "config.json").write_text(json.dumps(dict(gns=cfg, normalizer=norm, **info),
                                                 indent=2, default=str))
 
