@@ -51,6 +51,8 @@ class GNSConfig:
         type_embed: width of the particle-type embedding.
         capacity_multiplier: neighbour-list head-room factor.
         use_material: feed the raw material feature (tan phi) as a node feature.
+        clamp_to_bounds: keep predicted positions inside ``bounds`` (the box walls), so no
+            particle ever leaves the domain however inaccurate the network.
     """
 
     bounds: tuple = ((0.0, 1.0), (0.0, 1.0))
@@ -65,6 +67,7 @@ class GNSConfig:
     type_embed: int = 16
     capacity_multiplier: float = 1.25
     use_material: bool = True
+    clamp_to_bounds: bool = True
 
     def __post_init__(self):
         bounds = tuple((float(lo), float(hi)) for lo, hi in self.bounds)
@@ -181,6 +184,10 @@ class GNS:
         acc = self.acceleration(params, history, particle_type, material, senders,
                                 receivers, mask)
         x_next = x + (x - history[:, -2]) + acc
+        if self.config.clamp_to_bounds:
+            lo = jnp.asarray([b[0] for b in self.config.bounds], x_next.dtype)
+            hi = jnp.asarray([b[1] for b in self.config.bounds], x_next.dtype)
+            x_next = jnp.clip(x_next, lo, hi)
         target = x if kinematic_position is None else kinematic_position
         x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
         return x_next, nbrs
