@@ -141,3 +141,13 @@ def test_gradients_wrt_density_poisson_velocity_and_geometry(x64):
     _, jv = jax.jvp(f, (theta,), (tangent,))
     assert float(jv) == pytest.approx(float(g["vx"]), rel=1e-6)
     assert np.isfinite(float(val))
+
+
+def test_wall_friction_and_empty_node_gradients_finite_at_rest(x64):
+    """Zero velocity at a frictional wall and empty grid nodes: finite (zero) gradients."""
+    g = jax.grad(lambda v, mu: sum(jnp.sum(c) for c in boundaries.wall_friction(
+        v[0], v[1], 0.0, 1.0, mu)), argnums=(0, 1))(jnp.zeros((2, 4)), 0.4)
+    assert all(np.isfinite(np.asarray(x)).all() for x in g)
+    empty = jnp.zeros((5, 3))  # no mass anywhere
+    gv = jax.grad(lambda grid: grid_velocity(grid).sum())(empty)
+    assert np.isfinite(np.asarray(gv)).all()
