@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import iter_dataset, load_gns_npz, read_metadata
+from ..dataset import compute_statistics, iter_dataset, load_gns_npz, read_metadata
 from ..trajectory import Trajectory
 
 
@@ -69,17 +69,9 @@ def load_trajectories(path: str | Path, factor: int = 1, frame_stride: int = 1
 
 
 def frame_statistics(trajs: list[Trajectory]) -> dict:
-    """Velocity and acceleration mean/std in frame units (displacement per frame) over
-    ``trajs`` (after striding and coarse-graining, so they match what the GNS sees)."""
-    vs, acs = [], []
-    for t in trajs:
-        x = np.asarray(t.positions, np.float64)
-        v = np.diff(x, axis=0)
-        vs.append(v.reshape(-1, 2))
-        acs.append(np.diff(v, axis=0).reshape(-1, 2))
-    v, a = np.concatenate(vs), np.concatenate(acs)
-    return dict(vel_mean=v.mean(0).tolist(), vel_std=v.std(0).tolist(),
-                acc_mean=a.mean(0).tolist(), acc_std=a.std(0).tolist())
+    """Velocity and acceleration mean/std in frame units over ``trajs`` (after striding and
+    coarse-graining, so they match what the GNS sees); see :func:`compute_statistics`."""
+    return compute_statistics(np.asarray(t.positions) for t in trajs)
 
 
 @dataclass

@@ -28,19 +28,19 @@ def _normal_bc(vx, vy, nx, ny, kind: str, mu=None):
     return jnp.where(into, tx * scale, vx), jnp.where(into, ty * scale, vy)
 
 
-@jax.jit
-def wall_sticky(vx, vy, nx, ny):
-    return _normal_bc(vx, vy, nx, ny, "sticky")
+def _named_condition(name: str, kind: str):
+    """A jitted boundary condition named ``name``: it appears as ``name=...`` in the jaxpr, so
+    tests can check which conditions a scene traces."""
+    def condition(vx, vy, nx, ny, mu=None):
+        return _normal_bc(vx, vy, nx, ny, kind, mu)
+
+    condition.__name__ = condition.__qualname__ = name
+    return jax.jit(condition)
 
 
-@jax.jit
-def wall_slip(vx, vy, nx, ny):
-    return _normal_bc(vx, vy, nx, ny, "slip")
-
-
-@jax.jit
-def wall_friction(vx, vy, nx, ny, mu):
-    return _normal_bc(vx, vy, nx, ny, "friction", mu)
+WALL = {k: _named_condition(f"wall_{k}", k) for k in ("sticky", "slip", "friction")}
+OBSTACLE = {k: _named_condition(f"obstacle_{k}", k) for k in ("sticky", "slip", "friction")}
+wall_sticky, wall_slip, wall_friction = WALL["sticky"], WALL["slip"], WALL["friction"]
 
 
 def apply_walls(gv, walls, wall_mu, padding: int, n_cells: tuple[int, int]):
@@ -63,12 +63,8 @@ def apply_walls(gv, walls, wall_mu, padding: int, n_cells: tuple[int, int]):
     )
     for k, (wall, (sl, (nx, ny))) in enumerate(zip(walls, slabs)):
         vx, vy = gv[sl][0], gv[sl][1]
-        if wall.kind == "sticky":
-            vx, vy = wall_sticky(vx, vy, nx, ny)
-        elif wall.kind == "slip":
-            vx, vy = wall_slip(vx, vy, nx, ny)
-        else:
-            vx, vy = wall_friction(vx, vy, nx, ny, wall_mu[k])
+        mu = wall_mu[k] if wall.kind == "friction" else None
+        vx, vy = WALL[wall.kind](vx, vy, nx, ny, mu)
         gv = gv.at[sl].set(jnp.stack([vx, vy]))
     return gv
 
@@ -106,25 +102,6 @@ def apply_obstacles(gv, nodes, obstacle_mu):
     for kind, (idx, normals, owner) in nodes.items():
         vx, vy = gv[0, idx], gv[1, idx]
         mu = obstacle_mu[owner] if kind == "friction" else None
-        vx, vy = _obstacle(kind)(vx, vy, normals[0], normals[1], mu)
+        vx, vy = OBSTACLE[kind](vx, vy, normals[0], normals[1], mu)
         gv = gv.at[:, idx].set(jnp.stack([vx, vy]))
     return gv
-
-
-@jax.jit
-def obstacle_sticky(vx, vy, nx, ny, mu=None):
-    return _normal_bc(vx, vy, nx, ny, "sticky")
-
-
-@jax.jit
-def obstacle_slip(vx, vy, nx, ny, mu=None):
-    return _normal_bc(vx, vy, nx, ny, "slip")
-
-
-@jax.jit
-def obstacle_friction(vx, vy, nx, ny, mu):
-    return _normal_bc(vx, vy, nx, ny, "friction", mu)
-
-
-def _obstacle(kind):
-    return {"sticky": obstacle_sticky, "slip": obstacle_slip, "friction": obstacle_friction}[kind]

@@ -100,10 +100,8 @@ class MPMParams:
         )
 
     def wave_speeds(self) -> jax.Array:
-        """(B,) P-wave speed of each body (solids) or sound speed (fluids), m/s.
-
-        Uses the solid formula for every body; fluid bodies use sqrt(K/rho).
-        """
+        """((B,) solid P-wave speeds sqrt((lambda + 2 mu)/rho), (B,) fluid sound speeds
+        sqrt(K/rho)), m/s, for every body; the caller picks per body material."""
         mu = self.E / (2 * (1 + self.nu))
         lam = self.E * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
         solid = jnp.sqrt((lam + 2 * mu) / self.rho)

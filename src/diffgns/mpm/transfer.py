@@ -7,6 +7,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .linalg import safe_div
+
 
 def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
     """Scatter mass and MLS momentum to the grid in one scatter-add.
@@ -32,9 +34,7 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
 
 def grid_velocity(grid: jax.Array) -> jax.Array:
     """Grid velocity (2, n_nodes) from momentum and mass; 0 at empty nodes (finite gradient)."""
-    m = grid[:, 2]
-    has = m > 0
-    inv = jnp.where(has, 1.0 / jnp.where(has, m, 1.0), 0.0)
+    inv = safe_div(1.0, grid[:, 2])
     return jnp.stack([grid[:, 0] * inv, grid[:, 1] * inv])
 
 
@@ -56,7 +56,3 @@ def g2p(idx, w, dpos, gv: jax.Array, dx: float):
     ])
     return v, C
 
-
-def total_mass_momentum(grid: jax.Array):
-    """Total grid mass (kg) and momentum (2,) kg m/s."""
-    return grid[:, 2].sum(), grid[:, :2].sum(0)
