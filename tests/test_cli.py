@@ -3,6 +3,7 @@ import json
 
 import h5py
 import numpy as np
+import pytest
 
 from diffgns.cli import main
 from diffgns.dataset import load_dataset, read_metadata
@@ -56,3 +57,19 @@ def test_dataset_squares(tmp_path):
     assert main(["dataset", "--kind", "squares", "--n", "2", "--frames", "5", "--dx", "0.05",
                  "--out", str(path)]) == 0
     assert len(load_dataset(path)) == 2
+
+
+@pytest.mark.slow
+def test_hybrid_command_writes_comparison(tmp_path):
+    out = tmp_path / "hyb"
+    rc = main(["hybrid", "--aspect-ratio", "0.75", "--frames", "20", "--gns-frames", "4",
+               "--mpm-frames", "2", "--reference-cells", "12", "--out", str(out)])
+    assert rc == 0
+    rows = json.loads((out / "hybrid_comparison.json").read_text())
+    labels = [r["label"] for r in rows]
+    assert labels == ["MPM 12 cells (reference)", "MPM 8 cells", "GNS",
+                      "hybrid K=2 M=4 (carry)"]
+    assert rows[0]["mean_position_error_m"] == 0.0
+    assert all(r["finite"] and r["mean_position_error_m"] < 0.01 for r in rows)
+    assert abs(rows[3]["mpm_fraction"] - 9 / 20) < 1e-9  # 5 warm-up + 2 x 2 refinement
+    assert (out / "hybrid.gif").stat().st_size > 0

@@ -69,7 +69,7 @@ def _train(args) -> int:
                   mlp_layers=args.mlp_layers, noise_std=args.noise_std,
                   attention=args.attention)
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
-          frame_stride=args.frame_stride)
+          frame_stride=args.frame_stride, init_from=args.init_from)
     print(f"model written to {args.out}/model")
     return 0
 
@@ -94,6 +94,39 @@ def _rollout(args) -> int:
         animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
         (Path(args.out) / "rollout_metrics.json").write_text(json.dumps(s, indent=2))
         print(f"animation written to {args.out}/rollout.gif")
+    return 0
+
+
+def _hybrid(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from .graph.train_loop import load_model
+    from .hybrid import Schedule
+    from .hybrid_compare import compare
+    from .trajectory import Trajectory
+    from .viz import animate
+
+    sched = Schedule(warmup=args.warmup, gns_frames=args.gns_frames,
+                     mpm_frames=args.mpm_frames, handoff=args.handoff,
+                     adaptive_tol=args.adaptive_tol)
+    out = compare(load_model(args.model), args.aspect_ratio, args.friction_angle, sched,
+                  args.frames, args.reference_cells, args.cells_across)
+    print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s}")
+    for r in out["rows"]:
+        print(f"{r['label']:44s} {r['runout_error']:10.3f} "
+              f"{1e3 * r['mean_position_error_m']:10.2f} {r['seconds']:8.3f}")
+    dest = Path(args.out)
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / "hybrid_comparison.json").write_text(json.dumps(out["rows"], indent=2))
+    trajs = [Trajectory(positions=x, velocities=np.zeros_like(x),
+                        particle_type=np.zeros(x.shape[1], np.int32),
+                        material=np.zeros(x.shape[1]), frame_dt=out["frame_dt"],
+                        bounds=out["bounds"])
+             for x in out["positions"].values()]
+    animate(trajs, dest / "hybrid.gif", titles=list(out["positions"]), every=2)
+    print(f"comparison written to {dest}/hybrid.gif and hybrid_comparison.json")
     return 0
 
 
@@ -154,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--validate-every", type=int, default=2000)
     t.add_argument("--checkpoint-every", type=int, default=500)
+    t.add_argument("--init-from", default=None,
+                   help="model folder to fine-tune from (same configuration, fresh optimiser)")
     t.set_defaults(func=_train)
 
     r = sub.add_parser("rollout", help="roll a trained GNS out against a reference trajectory")
@@ -162,6 +197,23 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--index", type=int, default=0)
     r.add_argument("--out", default=None, help="folder for the MPM-vs-GNS animation")
     r.set_defaults(func=_rollout)
+
+    h = sub.add_parser("hybrid", help="hybrid GNS/MPM column collapse against MPM and GNS")
+    h.add_argument("--model", default="models/gns_columns")
+    h.add_argument("--aspect-ratio", type=float, default=1.75)
+    h.add_argument("--friction-angle", type=float, default=27.5, help="degrees")
+    h.add_argument("--frames", type=int, default=125, help="GNS frames")
+    h.add_argument("--warmup", type=int, default=5, help="MPM frames before the first GNS")
+    h.add_argument("--gns-frames", type=int, default=5, help="M: GNS frames per segment")
+    h.add_argument("--mpm-frames", type=int, default=2, help="K: MPM frames per segment")
+    h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"])
+    h.add_argument("--adaptive-tol", type=float, default=None,
+                   help="energy-balance tolerance (J/kg) for adaptive switching")
+    h.add_argument("--cells-across", type=int, default=8)
+    h.add_argument("--reference-cells", type=int, default=16,
+                   help="resolution of the reference MPM")
+    h.add_argument("--out", default="results/hybrid")
+    h.set_defaults(func=_hybrid)
     return p
 
 

@@ -75,6 +75,17 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std)), trajs, stats
 
 
+def _initial_model(path, gns: GNS):
+    """(GNS with the model's normaliser, its params) from ``path``; config must match."""
+    base, params, _ = load_model(path)
+    if base.config != gns.config:
+        diff = {k: (getattr(base.config, k), v) for k, v in dataclasses.asdict(gns.config)
+                .items() if getattr(base.config, k) != v and k != "bounds"}
+        raise ValueError(f"--init-from model {path} has a different configuration: "
+                         f"(model, requested) = {diff}")
+    return GNS(gns.config, base.normalizer), params
+
+
 def _union_bounds(trajs):
     b = np.array([t.bounds for t in trajs])
     return ((float(b[:, 0, 0].min()), float(b[:, 0, 1].max())),
@@ -82,8 +93,14 @@ def _union_bounds(trajs):
 
 
 def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
-          factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True):
-    """Train (or resume) a GNS; returns (gns, params, history dict)."""
+          factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True,
+          init_from=None):
+    """Train (or resume) a GNS; returns (gns, params).
+
+    ``init_from``: a model folder whose parameters start a fresh run (fine-tuning, e.g. with
+    push-forward); its configuration must equal the one requested here, and the run keeps its
+    normalisation statistics. Ignored when ``out_dir`` already holds a checkpoint (resume).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     gns, trajs, stats = build(train_paths, dict(gns_kw), factor, frame_stride)
@@ -96,8 +113,12 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     params = gns.init(jax.random.PRNGKey(tcfg.seed),
                       (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
                        jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
-    opt_state = trainer.opt.init(params)
     ckpt = out / "checkpoint.msgpack"
+    if init_from is not None and not ckpt.exists():
+        gns, params = _initial_model(init_from, gns)
+        trainer = Trainer(gns, tcfg)
+        print(f"fine-tuning from {init_from}")
+    opt_state = trainer.opt.init(params)
     step = 0
     if ckpt.exists():
         params, opt_state, step = load_checkpoint(ckpt, params, opt_state)

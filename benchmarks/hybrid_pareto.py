@@ -1,0 +1,156 @@
+"""Accuracy against wall time of the MPM, the GNS and hybrid GNS/MPM schedules (issue 5).
+
+    python benchmarks/hybrid_pareto.py --out benchmarks/results/hybrid_pareto.json
+
+On held-out column collapses (aspect ratios and friction angles not in the GNS training
+set), every simulator is scored against a fine MPM reference (``--reference-cells`` cells
+across the column): final runout error and the material-point position error (mean over
+particles and frames; see ``diffgns.hybrid_compare``). Wall time is the steady-state time of
+the jitted rollout (compile separated, median of ``--repeats``, block_until_ready), summed
+over the cases. The Pareto front (mean position error against time) is marked in the table
+and the plot (``hybrid_pareto.png``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS_DIR, command_line, use_agg, warm_up_jax, write_json  # noqa: E402
+
+from diffgns.graph.train_loop import load_model  # noqa: E402
+from diffgns.hybrid import Schedule  # noqa: E402
+from diffgns.hybrid_compare import column_scene, run_hybrid, run_mpm, score_against  # noqa
+
+CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
+
+
+def schedules(quick: bool):
+    gns_only = [Schedule(gns_frames=1, mpm_frames=0)]
+    hyb = [Schedule(gns_frames=m, mpm_frames=k) for k, m in
+           ((1, 10), (2, 10), (2, 5), (4, 4), (4, 2))]
+    hyb += [Schedule(gns_frames=20, mpm_frames=2, adaptive_tol=tol) for tol in (0.02, 0.005)]
+    hyb += [Schedule(gns_frames=5, mpm_frames=2, handoff=h) for h in ("reset", "reconstruct")]
+    return gns_only + (hyb[2:4] if quick else hyb)
+
+
+def pareto(points):
+    """Indices of points (time, error) not dominated by any other (lower is better)."""
+    keep = []
+    for i, (t, e) in enumerate(points):
+        if not any((t2 <= t and e2 <= e) and (t2 < t or e2 < e)
+                   for j, (t2, e2) in enumerate(points) if j != i):
+            keep.append(i)
+    return keep
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", nargs="+", default=["models/gns_columns", "models/gns_small"])
+    ap.add_argument("--frames", type=int, default=125, help="GNS frames (0.625 s)")
+    ap.add_argument("--reference-cells", type=int, default=16)
+    ap.add_argument("--mpm-cells", type=int, nargs="+", default=[4, 6, 8, 12])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="2 hybrid schedules, 1 case")
+    ap.add_argument("--out", default=str(RESULTS_DIR / "hybrid_pareto.json"))
+    args = ap.parse_args()
+    warm_up_jax()
+    cases = CASES[1:2] if args.quick else CASES
+    models = {Path(m).name: load_model(m) for m in args.models if Path(m).exists()}
+    stride = next(iter(models.values()))[2].get("frame_stride", 1)
+    rows = []
+    for a, phi in cases:
+        ref, t_ref = run_mpm(column_scene(a, phi, args.reference_cells), args.frames, stride, 1)
+        rows.append(dict(case=[a, phi], family="reference", label=f"MPM {args.reference_cells}"
+                         f" cells (reference)", **score_against(ref, ref), **t_ref))
+        for cells in args.mpm_cells:
+            x, t = run_mpm(column_scene(a, phi, cells), args.frames, stride, args.repeats)
+            rows.append(dict(case=[a, phi], family="MPM", label=f"MPM {cells} cells",
+                             **score_against(x, ref), **t))
+            print(rows[-1]["label"], a, phi, f"{rows[-1]['mean_position_error_m']:.2e}",
+                  f"{t['seconds']:.3f}s", flush=True)
+        scene = column_scene(a, phi, 8)
+        for name, (gns, gp, info) in models.items():
+            for sched in schedules(args.quick):
+                if name != "gns_columns" and sched.mpm_frames not in (0, 2, 4) \
+                        or (name != "gns_columns" and sched.handoff != "carry"):
+                    continue
+                res, t = run_hybrid(scene, gns, gp, info, sched, args.frames, args.repeats)
+                fam = "GNS" if sched.mpm_frames == 0 else "hybrid"
+                rows.append(dict(case=[a, phi], family=fam, label=f"{sched.label} [{name}]",
+                                 **score_against(np.asarray(res.positions), ref), **t))
+                print(rows[-1]["label"], a, phi,
+                      f"{rows[-1]['mean_position_error_m']:.2e}", f"{t['seconds']:.3f}s",
+                      flush=True)
+    table = aggregate(rows)
+    write_json(Path(args.out).name, dict(command=command_line(), cases=cases,
+                                         frames=args.frames, rows=rows, table=table))
+    plot(table, Path(args.out).with_suffix(".png"))
+    print_table(table)
+
+
+def aggregate(rows):
+    labels = list(dict.fromkeys(r["label"] for r in rows))
+    table = []
+    for lab in labels:
+        rs = [r for r in rows if r["label"] == lab]
+        table.append(dict(label=lab, family=rs[0]["family"],
+                          seconds=float(sum(r["seconds"] for r in rs)),
+                          compile_s=float(sum(r["compile_s"] for r in rs)),
+                          runout_error=float(np.mean([r["runout_error"] for r in rs])),
+                          mean_position_error_m=float(np.mean(
+                              [r["mean_position_error_m"] for r in rs])),
+                          final_position_error_m=float(np.mean(
+                              [r["final_position_error_m"] for r in rs])),
+                          mpm_fraction=rs[0].get("mpm_fraction", 1.0)))
+    cand = [i for i, r in enumerate(table) if r["family"] != "reference"]
+    front = pareto([(table[i]["seconds"], table[i]["mean_position_error_m"]) for i in cand])
+    for k, i in enumerate(cand):
+        table[i]["pareto"] = k in front
+    return table
+
+
+def print_table(table):
+    print(f"\n{'simulator':52s} {'time s':>8s} {'MPM %':>6s} {'runout err':>10s} "
+          f"{'pos err mm':>10s} {'final mm':>9s} front")
+    for r in table:
+        print(f"{r['label']:52s} {r['seconds']:8.3f} {100 * r['mpm_fraction']:6.0f} "
+              f"{r['runout_error']:10.3f} {1e3 * r['mean_position_error_m']:10.2f} "
+              f"{1e3 * r['final_position_error_m']:9.2f} {'*' if r.get('pareto') else ''}")
+
+
+def plot(table, path: Path):
+    plt = use_agg()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    marks = {"MPM": ("s", "tab:blue"), "GNS": ("^", "tab:red"), "hybrid": ("o", "tab:green")}
+    for r in table:
+        if r["family"] == "reference":
+            continue
+        m, c = marks[r["family"]]
+        ax.scatter(r["seconds"], 1e3 * r["mean_position_error_m"], marker=m, color=c,
+                   edgecolor="k" if r.get("pareto") else "none", s=60, zorder=3)
+        ax.annotate(r["label"].replace(" (carry)", ""), (r["seconds"],
+                    1e3 * r["mean_position_error_m"]), fontsize=6, xytext=(3, 3),
+                    textcoords="offset points")
+    front = sorted((r["seconds"], 1e3 * r["mean_position_error_m"]) for r in table
+                   if r.get("pareto"))
+    if front:
+        ax.plot(*zip(*front), "k--", lw=0.8, label="Pareto front")
+    for fam, (m, c) in marks.items():
+        ax.scatter([], [], marker=m, color=c, label=fam)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time, s (steady state, summed over held-out cases)")
+    ax.set_ylabel("mean material-point position error, mm")
+    ax.set_title("Accuracy vs time against a fine MPM reference")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    print(f"plot written to {path}")
+
+
+if __name__ == "__main__":
+    main()

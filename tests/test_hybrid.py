@@ -1,0 +1,176 @@
+"""Hybrid GNS/MPM rollout: schedules, hand-off, limits, gradients."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgns import MPM
+from diffgns.graph.train_loop import load_model
+from diffgns.hybrid import GNS_MODE, MPM_MODE, Hybrid, Schedule
+from diffgns.hybrid_handoff import lsq_gradient, node_means, particles_from_nodes
+from diffgns.metrics import runout
+from diffgns.scene_builders import column_collapse
+
+MODEL = "models/gns_columns"
+
+
+def small_scene(phi=30.0, aspect_ratio=0.5):
+    return column_collapse(width=0.1, aspect_ratio=aspect_ratio, friction_angle=phi,
+                           cells_across=8, domain_length=0.8, domain_height=0.35)
+
+
+@pytest.fixture(scope="module")
+def model():
+    gns, params, info = load_model(MODEL)
+    return gns, params, info
+
+
+def modes_of(sched, n):
+    """The frame-by-frame simulator a fixed schedule should use."""
+    out = []
+    out += [MPM_MODE] * sched.warmup
+    while len(out) < n:
+        out += [GNS_MODE] * sched.gns_frames + [MPM_MODE] * sched.mpm_frames
+    return np.array(out[:n])
+
+
+def test_schedule_rejects_invalid_input():
+    with pytest.raises(ValueError, match="handoff"):
+        Schedule(handoff="teleport")
+    with pytest.raises(ValueError, match="gns_frames \\+ mpm_frames > 0"):
+        Schedule(gns_frames=0, mpm_frames=0)
+    with pytest.raises(ValueError, match="adaptive_tol > 0"):
+        Schedule(adaptive_tol=-1.0)
+
+
+def test_warmup_shorter_than_history_rejected(model):
+    gns, params, _ = model
+    with pytest.raises(ValueError, match="warmup"):
+        Hybrid(MPM(small_scene()), gns, params, 2, 4, Schedule(warmup=2))
+
+
+def test_lsq_gradient_exact_for_linear_field():
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.uniform(0, 1, (30, 2)))
+    G = jnp.array([[0.3, -1.2], [2.0, 0.5]])
+    u = x @ G.T + 0.7
+    s, r = np.meshgrid(np.arange(30), np.arange(30))
+    s, r = jnp.asarray(s.ravel()), jnp.asarray(r.ravel())
+    out = lsq_gradient(u, x, s, r, jnp.ones(s.shape, bool))
+    np.testing.assert_allclose(out, np.broadcast_to(G, (30, 2, 2)), atol=1e-4)
+    lonely = lsq_gradient(u, x, s[:1], r[:1], jnp.ones(1, bool))  # one edge: no gradient
+    assert np.all(np.asarray(lonely) == 0)
+
+
+def test_handoff_moves_particles_with_their_node_and_sets_F():
+    sim = MPM(small_scene())
+    st = sim.init_state()
+    n = st.n_particles
+    cluster = jnp.asarray(np.arange(n) % 3)
+    disp = jnp.array([[0.01, 0.0], [0.0, 0.02], [0.005, 0.005]])  # stays inside
+    vel = disp / 0.005
+    gv = jnp.broadcast_to(jnp.array([[0.0, 1.0], [0.0, 0.0]]), (3, 2, 2))
+    gu = jnp.broadcast_to(jnp.array([[0.1, 0.0], [0.0, 0.0]]), (3, 2, 2))
+    lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
+    st = st.replace(F=st.F * 1.01)
+    for mode in ("reset", "carry", "reconstruct"):
+        new = particles_from_nodes(st, cluster, disp, vel, gv, gu, mode, lo, hi)
+        np.testing.assert_allclose(new.x - st.x, disp[cluster].T, atol=1e-7)
+        np.testing.assert_allclose(new.v, vel[cluster].T, rtol=1e-6)
+        np.testing.assert_allclose(new.C[0, 1], 1.0)
+        detF = new.F[0, 0] * new.F[1, 1] - new.F[0, 1] * new.F[1, 0]
+        want = {"reset": 1.0, "carry": 1.01**2, "reconstruct": 1.01**2}[mode]
+        np.testing.assert_allclose(detF, want, rtol=1e-5)  # reconstruct is isochoric
+    np.testing.assert_allclose(node_means(st.x, cluster, jnp.bincount(cluster)),
+                               [st.x[:, np.arange(n) % 3 == k].mean(1) for k in range(3)],
+                               rtol=1e-6)
+
+
+def test_mpm_only_schedule_is_the_mpm(model):
+    gns, params, _ = model
+    sim = MPM(small_scene())
+    p, st = sim.params(), sim.init_state()
+    hyb = Hybrid(sim, gns, params, 2, 4, Schedule(warmup=5, gns_frames=0, mpm_frames=1))
+    res, _ = hyb.run(p, st, 12)
+    ref = sim.rollout(p, st, 24)
+    np.testing.assert_allclose(res.positions, np.asarray(ref.positions)[::2], atol=1e-6)
+    assert np.all(np.asarray(res.mode) == MPM_MODE)
+
+
+def test_fixed_schedule_and_gns_frames_match_the_gns(model):
+    gns, params, _ = model
+    sim = MPM(small_scene())
+    p, st = sim.params(), sim.init_state()
+    sched = Schedule(warmup=5, gns_frames=4, mpm_frames=2)
+    hyb = Hybrid(sim, gns, params, 2, 4, sched)
+    res, nbrs = hyb.run(p, st, 20)
+    np.testing.assert_array_equal(res.mode, modes_of(sched, 20))
+    # The first GNS segment is exactly a GNS rollout from the warm-up history.
+    nodes = np.asarray(res.nodes)
+    hist = jnp.swapaxes(jnp.asarray(nodes[:6]), 0, 1)
+    xs, _ = gns.rollout_safe(params, hist, hyb.node_type, hyb.node_material(p), 4)
+    np.testing.assert_allclose(nodes[6:10], xs, atol=2e-6)
+    # Particles follow their node: node means of the particles are the nodes.
+    parts = jnp.asarray(res.positions[9]).T
+    np.testing.assert_allclose(hyb.nodes(st.replace(x=parts)), nodes[9], atol=2e-6)
+    # A second run reuses the compiled rollout (no recompilation).
+    size = hyb._run._cache_size()
+    hyb.run(p, st, 20, nbrs)
+    assert hyb._run._cache_size() == size
+
+
+def test_adaptive_switch_fires_on_the_indicator(model):
+    gns, params, _ = model
+    sim = MPM(small_scene(aspect_ratio=1.0))
+    p, st = sim.params(), sim.init_state()
+    loose = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
+                                                      adaptive_tol=1e9))
+    tight = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
+                                                      adaptive_tol=1e-9))
+    r_loose, _ = loose.run(p, st, 30)
+    r_tight, _ = tight.run(p, st, 30)
+    np.testing.assert_array_equal(r_loose.mode, modes_of(loose.schedule, 30))
+    m = np.asarray(r_tight.mode)[5:]
+    assert np.all(m[::2] == GNS_MODE) and np.all(m[1::2] == MPM_MODE)  # min segment: 1
+    assert np.all(np.asarray(r_tight.indicator)[5:][m == GNS_MODE] > 0)
+
+
+@pytest.mark.slow
+def test_long_hybrid_rollout_stays_in_the_box_and_finite(model):
+    gns, params, _ = model
+    sim = MPM(small_scene(aspect_ratio=2.0, phi=20.0))
+    p, st = sim.params(), sim.init_state()
+    res, _ = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=10, mpm_frames=1)).run(
+        p, st, 200)
+    x = np.asarray(res.positions)
+    assert np.isfinite(x).all()
+    lo, hi = np.asarray(sim.lo), np.asarray(sim.hi)
+    assert (x >= lo - 1e-6).all() and (x <= hi + 1e-6).all()
+    v = np.diff(x[-6:], axis=0) / res.frame_dt
+    assert np.sqrt((v**2).sum(-1)).mean() < 0.02  # at rest (m/s) after 1 s
+
+
+@pytest.mark.slow  # ~50 s of compilation on a quiet 2-core machine
+def test_grad_through_hybrid_matches_finite_differences(model, x64):
+    gns, params, _ = model
+    params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params)
+    sim = MPM(small_scene(phi=30.0, aspect_ratio=1.0), dtype=jnp.float64)
+    st = sim.init_state()
+    hyb = Hybrid(sim, gns, params, 2, 4, Schedule(warmup=5, gns_frames=3, mpm_frames=2),
+                 checkpoint_block=5)
+    p0 = sim.params()
+    nbrs = hyb.run(p0, st, 25)[1]
+
+    def loss(phi):
+        p = p0.replace(friction_angle=p0.friction_angle.at[0].set(phi))
+        x, over = hyb.rollout(p, st, 25, nbrs)
+        return runout(x[-1], method="softmax", temperature=5e-3), over
+
+    (L, over), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(30.0)
+    assert not bool(over)
+    h = 0.05
+    fd = (loss(30.0 + h)[0] - loss(30.0 - h)[0]) / (2 * h)
+    assert np.isfinite(g) and abs(g) > 1e-6
+    np.testing.assert_allclose(g, fd, rtol=0.02)
