@@ -23,7 +23,13 @@ from _common import RESULTS_DIR, command_line, use_agg, warm_up_jax, write_json 
 
 from diffgns.graph.train_loop import load_model  # noqa: E402
 from diffgns.hybrid import Schedule  # noqa: E402
-from diffgns.hybrid_compare import column_scene, run_hybrid, run_mpm, score_against  # noqa
+from diffgns.hybrid_compare import (  # noqa: E402
+    column_scene,
+    model_cells,
+    run_hybrid,
+    run_mpm,
+    score_against,
+)
 
 CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
 
@@ -72,12 +78,12 @@ def main():
                              **score_against(x, ref), **t))
             print(rows[-1]["label"], a, phi, f"{rows[-1]['mean_position_error_m']:.2e}",
                   f"{t['seconds']:.3f}s", flush=True)
-        scene = column_scene(a, phi, 8)
         for name, (gns, gp, info) in models.items():
+            scene = column_scene(a, phi, model_cells(info))
             for sched in schedules(args.quick):
-                if name != "gns_columns" and sched.mpm_frames not in (0, 2, 4) \
-                        or (name != "gns_columns" and sched.handoff != "carry"):
-                    continue
+                if name != args.models[0].rstrip("/").split("/")[-1] and (
+                        sched.handoff != "carry" or sched.adaptive_tol):
+                    continue  # hand-off and adaptive variants: first model only
                 res, t = run_hybrid(scene, gns, gp, info, sched, args.frames, args.repeats)
                 fam = "GNS" if sched.mpm_frames == 0 else "hybrid"
                 rows.append(dict(case=[a, phi], family=fam, label=f"{sched.label} [{name}]",

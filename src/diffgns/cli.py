@@ -209,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"])
     h.add_argument("--adaptive-tol", type=float, default=None,
                    help="energy-balance tolerance (J/kg) for adaptive switching")
-    h.add_argument("--cells-across", type=int, default=8)
+    h.add_argument("--cells-across", type=int, default=None,
+                   help="MPM resolution of GNS/hybrid runs (default: the model's data)")
     h.add_argument("--reference-cells", type=int, default=16,
                    help="resolution of the reference MPM")
     h.add_argument("--out", default="results/hybrid")

@@ -69,6 +69,11 @@ def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int =
                            domain_height=domain[1])
 
 
+def model_cells(info: dict) -> int:
+    """MPM resolution (cells across the column) of a GNS model's training data."""
+    return int(info.get("source", {}).get("cells_across", 8))
+
+
 def run_mpm(scene, n_frames: int, stride: int, repeats: int = 3):
     """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
     sim = MPM(scene)
@@ -95,16 +100,19 @@ def run_hybrid(scene, gns, gns_params, info: dict, schedule: Schedule, n_frames:
 
 
 def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedule,
-            n_frames: int, reference_cells: int = 16, cells_across: int = 8,
+            n_frames: int, reference_cells: int = 16, cells_across: int | None = None,
             repeats: int = 3) -> dict:
     """MPM (reference and at ``cells_across``), GNS alone and the hybrid on one column.
 
-    ``model`` is ``(gns, params, info)`` from :func:`~diffgns.graph.train_loop.load_model`.
+    ``model`` is ``(gns, params, info)`` from :func:`~diffgns.graph.train_loop.load_model`;
+    the GNS and hybrid run on the MPM resolution of its training data unless ``cells_across``
+    is given.
     Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s}``; each row
     has the label, the scores of :func:`score_against` and the timing.
     """
     gns, gp, info = model
     stride = info.get("frame_stride", 1)
+    cells_across = cells_across or model_cells(info)
     ref, t_ref = run_mpm(column_scene(aspect_ratio, friction_angle, reference_cells),
                          n_frames, stride, repeats=1)
     scene = column_scene(aspect_ratio, friction_angle, cells_across)

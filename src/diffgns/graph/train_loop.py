@@ -66,10 +66,15 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
 
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     """Load training data and build the GNS whose normaliser matches it."""
-    trajs = []
+    trajs, meta = [], {}
     for p in train_paths:
-        trajs += load_trajectories(p, factor, frame_stride)[0]
+        t, m = load_trajectories(p, factor, frame_stride)
+        trajs += t
+        meta = meta or m
     stats = frame_statistics(trajs)
+    # What the data came from (e.g. the MPM resolution a hybrid must pair this model with).
+    stats["source"] = {k: meta[k] for k in ("kind", "width", "cells_across", "dt", "bounds")
+                       if k in meta}
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
     cfg = GNSConfig(bounds=bounds, **gns_kw)
     return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std)), trajs, stats
@@ -123,9 +128,10 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     if ckpt.exists():
         params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
         print(f"resumed from {ckpt} at step {step}")
+    source = stats.pop("source")
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
-                frame_stride=frame_stride)
+                frame_stride=frame_stride, source=source)
     (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
     nbrs = {}
     log = (out / "train_log.csv").open("a")
