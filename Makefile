@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= results/inverse
 
-.PHONY: demo collapse test test-slow bench lint venv
+.PHONY: demo collapse test test-slow bench bench-gns lint venv
 
 $(VENV)/.installed-%: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -34,3 +34,15 @@ bench: $(VENV)/.installed-bench $(VENV)/.installed-test
 	$(PY) benchmarks/mpm_vs_taichi.py
 	$(PY) benchmarks/mpm_effects.py
 	$(PY) benchmarks/mpm_grad_memory.py
+	$(PY) benchmarks/runout_gradients.py
+	$(PY) benchmarks/gns_vs_torch.py
+	$(PY) benchmarks/gns_configs_cost.py
+
+# GNS accuracy and the hybrid Pareto front need the datasets of the model cards (data/)
+bench-gns: $(VENV)/.installed-test
+	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_columns --data data/columns_test.h5
+	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_cg16 --data data/columns16_test.h5 \
+		--out benchmarks/results/gns_cg16_accuracy.json
+	$(PY) benchmarks/hybrid_pareto.py
+	$(PY) benchmarks/inverse_gns_memory.py
+	$(PY) benchmarks/inverse_gns_bias.py

@@ -1,0 +1,202 @@
+"""Memory and time of gradients through GNS rollouts, with and without jax.checkpoint.
+
+    .venv/bin/python benchmarks/inverse_gns_memory.py [--frames 30 100 120] [--blocks 10 2]
+        [--repeats 3] [--aspect-ratio 1.75] [--note TEXT]
+
+Model: ``models/gns_columns`` (latent 64, 5 message-passing steps). Scene: the main inverse
+example's column (``ColumnCase(aspect_ratio=1.75)``: 448 MPM particles -> 112 GNS nodes in
+the 0.8 x 0.35 m box); the 6 initial frames are observed MPM frames. Loss: the inverse
+example's ``(soft runout(x_T) - observed soft runout(x_T))^2`` at the last predicted frame T;
+gradient with respect to the friction angle (through tan phi, the material feature of every
+node). 120 predicted frames (0.6 s) is the full rollout to rest.
+
+For every frame count and checkpoint in {none, blocks of each of ``--blocks`` frames}, in a fresh
+process: the forward and gradient programs are compiled ahead of time (``lower`` +
+``compile``, timed on their own) and XLA's ``memory_analysis()`` is stored (temp, argument,
+output; MB = 1e6 bytes); then one warm-up call and ``--repeats`` steady calls of each
+(``block_until_ready``; median reported); the process's peak RSS
+(``getrusage(RUSAGE_SELF).ru_maxrss``) after compiling and at the end.
+
+Writes ``benchmarks/results/inverse_gns_memory.json`` and ``.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from _common import RESULTS_DIR, machine_info, timed, use_agg, warm_up_jax, write_json
+
+TAG = "INVERSE_GNS_MEMORY_RESULT "
+MB = 1e6
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / MB
+
+
+def memory(exe) -> dict:
+    m = exe.memory_analysis()
+    out = {k: int(getattr(m, k)) for k in ("temp_size_in_bytes", "argument_size_in_bytes",
+                                            "output_size_in_bytes", "alias_size_in_bytes")}
+    out["temp_mb"] = out["temp_size_in_bytes"] / MB
+    out["total_mb"] = (out["temp_size_in_bytes"] + out["argument_size_in_bytes"]
+                       + out["output_size_in_bytes"] - out["alias_size_in_bytes"]) / MB
+    return out
+
+
+def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from diffgns import objectives
+    from diffgns.simulators import Column, ColumnCase, gns_simulator
+
+    warm_up_jax()
+    col = Column(ColumnCase(aspect_ratio=aspect_ratio))
+    observed = col.observation({"friction_angle": 30.0})
+    sim = gns_simulator(col, observed=observed, checkpoint_block=block, n_steps=n_steps)
+    T = sim.C + 1 + n_steps
+    obj = objectives.runout_loss(observed[:T], method="softmax")
+
+    def loss(phi):
+        pos, overflow = sim.rollout({"friction_angle": phi})
+        return obj(pos)
+
+    phi = jnp.asarray(45.0, jnp.float32)
+    res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block), "nodes": col.n_nodes,
+           "loadavg_start": list(os.getloadavg())}
+    exes = {}
+    for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss))):
+        lw, _, lowered = timed(lambda fn=fn: jax.jit(fn).lower(phi), sync=lambda x: x)
+        cw, cc, exe = timed(lowered.compile, sync=lambda x: x)
+        exes[name] = exe
+        res[name] = {"lower_s": lw, "compile_s": cw, "compile_cpu_s": cc, "memory": memory(exe)}
+        log(f"[{n_steps} steps, block {block}] {name}: compile {lw + cw:.1f} s, XLA temp "
+            f"{res[name]['memory']['temp_mb']:.1f} MB")
+    res["peak_rss_after_compile_mb"] = rss_mb()
+    for name, exe in exes.items():
+        w, _, out = timed(lambda exe=exe: exe(phi))
+        samples = [timed(lambda exe=exe: exe(phi))[:2] for _ in range(repeats)]
+        walls = [s[0] for s in samples]
+        res[name].update(first_call_s=w, median_s=statistics.median(walls), samples_s=walls,
+                         cpu_samples_s=[s[1] for s in samples])
+        if name == "gradient":
+            res["loss"], res["dloss_dphi"] = float(out[0]), float(out[1])
+        log(f"[{n_steps} steps, block {block}] {name}: first {w:.2f} s, median "
+            f"{res[name]['median_s']:.2f} s")
+    res["grad_over_forward"] = res["gradient"]["median_s"] / res["forward"]["median_s"]
+    res["peak_rss_mb"] = rss_mb()
+    res["loadavg_end"] = list(os.getloadavg())
+    return res
+
+
+def spawn(n_steps: int, block: int | None, args) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--case", str(n_steps),
+           str(block or 0), "--repeats", str(args.repeats), "--aspect-ratio",
+           str(args.aspect_ratio)]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+    for line in p.stdout.splitlines():
+        if line.startswith(TAG):
+            res = json.loads(line[len(TAG):])
+            break
+    else:
+        res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block),
+               "error": f"worker exited with code {p.returncode}"}
+    res["case_wall_s"] = time.perf_counter() - t0
+    return res
+
+
+def table(rows) -> str:
+    head = (f"{'frames':>6} {'ckpt':>5} {'grad temp MB':>12} {'fwd temp MB':>11} "
+            f"{'compile g s':>11} {'grad s':>7} {'fwd s':>6} {'g/f':>5} {'RSS MB':>7}")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"{r['n_steps']:>6} {r['block'] or '-':>5}  ERROR {r['error']}")
+            continue
+        g, f = r["gradient"], r["forward"]
+        lines.append(f"{r['n_steps']:>6} {r['block'] or '-':>5} {g['memory']['temp_mb']:>12.1f} "
+                     f"{f['memory']['temp_mb']:>11.1f} {g['lower_s'] + g['compile_s']:>11.1f} "
+                     f"{g['median_s']:>7.2f} {f['median_s']:>6.2f} "
+                     f"{r['grad_over_forward']:>5.2f} {r['peak_rss_mb']:>7.0f}")
+    lines.append("frames = predicted GNS frames (5 ms) after 6 given; ckpt = jax.checkpoint block "
+                 "(frames); temp = XLA temp allocation; times: median steady call; RSS = peak "
+                 "RSS of the case's own process (MB = 1e6 bytes)")
+    return "\n".join(lines)
+
+
+def plot(rows, path: Path) -> None:
+    plt = use_agg()
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
+    blocks = sorted({r["block"] or 0 for r in rows if "error" not in r})
+    for i, b in enumerate(blocks):
+        rs = sorted((r for r in rows if "error" not in r and (r["block"] or 0) == b),
+                    key=lambda r: r["n_steps"])
+        lab = f"checkpoint block {b}" if b else "no checkpoint"
+        n = [r["n_steps"] for r in rs]
+        a0.plot(n, [r["gradient"]["memory"]["temp_mb"] for r in rs], "o-", color=f"C{i}",
+                label=f"XLA temp, {lab}")
+        a0.plot(n, [r["peak_rss_mb"] for r in rs], "x:", color=f"C{i}", label=f"peak RSS, {lab}")
+        a1.plot(n, [r["gradient"]["median_s"] for r in rs], "o-", color=f"C{i}", label=lab)
+    a0.set_yscale("log")
+    a0.set_xlabel("GNS frames")
+    a0.set_ylabel("MB")
+    a0.set_title("memory of d loss / d phi (112-node column)")
+    a0.legend(fontsize=7)
+    a1.set_xlabel("GNS frames")
+    a1.set_ylabel("s per gradient (median)")
+    a1.set_title("time per gradient")
+    a1.legend(fontsize=8)
+    for a in (a0, a1):
+        a.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, nargs="+", default=[30, 100, 120])
+    ap.add_argument("--blocks", type=int, nargs="+", default=[10, 2],
+                    help="frames per jax.checkpoint block (each also run without)")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--aspect-ratio", type=float, default=1.75)
+    ap.add_argument("--note", default=None)
+    ap.add_argument("--case", nargs=2, type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.case:
+        res = run_case(args.case[0], args.case[1] or None, args.repeats, args.aspect_ratio)
+        print(TAG + json.dumps(res), flush=True)
+        return
+    machine = machine_info()
+    t0 = time.time()
+    rows = [spawn(n, b, args) for n in sorted(args.frames) for b in (None, *args.blocks)]
+    text = table(rows)
+    print(text)
+    png = RESULTS_DIR / "inverse_gns_memory.png"
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    plot(rows, png)
+    path = write_json("inverse_gns_memory.json", {
+        "benchmark": "inverse_gns_memory", "note": args.note,
+        "description": "d/dphi of the soft-runout misfit through GNS rollouts of models/"
+                       "gns_columns, with and without jax.checkpoint blocks; AOT-compiled "
+                       "programs, XLA memory_analysis, median steady calls, one process per "
+                       "case", "settings": vars(args), "total_wall_s": time.time() - t0,
+        "table": text, "results": rows, "plot": png.name}, machine)
+    print(f"wrote {path} and {png}")
+
+
+if __name__ == "__main__":
+    main()
