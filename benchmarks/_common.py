@@ -161,12 +161,13 @@ def machine_info() -> dict[str, Any]:
 
 
 def write_json(name: str, payload: dict[str, Any], machine: dict[str, Any] | None = None) -> Path:
-    """Write ``payload`` plus machine info to ``benchmarks/results/<name>``."""
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    """Write ``payload`` plus machine info to ``benchmarks/results/<name>``, or to ``name``
+    itself when it names a folder (e.g. ``/tmp/x.json``)."""
     doc = {"machine": machine if machine is not None else machine_info(), **payload}
     if hasattr(os, "getloadavg"):
         doc["machine"]["loadavg_1_5_15_at_end"] = list(os.getloadavg())
-    path = RESULTS_DIR / name
+    path = Path(name) if Path(name).parent != Path(".") else RESULTS_DIR / name
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2, default=float) + "\n")
     return path
 

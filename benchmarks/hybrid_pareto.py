@@ -105,8 +105,8 @@ def main():
                       f"{rows[-1]['mean_position_error_m']:.2e}", f"{t['seconds']:.3f}s",
                       flush=True)
     table = aggregate(rows)
-    write_json(Path(args.out).name, dict(command=command_line(), cases=cases,
-                                         frames=args.frames, rows=rows, table=table))
+    write_json(args.out, dict(command=command_line(), cases=cases, frames=args.frames,
+                              rows=rows, table=table))
     plot(table, Path(args.out).with_suffix(".png"))
     print_table(table)
 
