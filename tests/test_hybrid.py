@@ -165,7 +165,7 @@ def test_grad_through_hybrid_matches_finite_differences(model, x64):
 
     def loss(phi):
         p = p0.replace(friction_angle=p0.friction_angle.at[0].set(phi))
-        x, over = hyb.rollout(p, st, 25, nbrs)
+        x, _, over = hyb.rollout(p, st, 25, nbrs)
         return runout(x[-1], method="softmax", temperature=5e-3), over
 
     (L, over), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(30.0)

@@ -40,7 +40,6 @@ from .hybrid_handoff import (
     particles_from_nodes,
     specific_energy,
 )
-from .trajectory import Trajectory
 
 GNS_MODE, MPM_MODE = 0, 1
 
@@ -173,11 +172,10 @@ class Hybrid:
         hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
         return (state, hist, nbrs, jnp.zeros_like(indicator), rate), jnp.zeros((), bool)
 
-    def _gns_frame(self, params, gns_params, carry):
+    def _gns_frame(self, params, gns_params, material, carry):
         state, hist, nbrs, indicator, rate = carry
         x = hist[:, -1]
-        x_next, nbrs = self.gns.step(gns_params, hist, self.node_type,
-                                     self.node_material(params), nbrs)
+        x_next, nbrs = self.gns.step(gns_params, hist, self.node_type, material, nbrs)
         x_next = x_next.astype(hist.dtype)
         s, r, m = edges(nbrs, x.shape[0])
         disp = x_next - x
@@ -195,12 +193,13 @@ class Hybrid:
         hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
         return (state, hist, nbrs, indicator, rate), did_overflow(nbrs)
 
-    def _frame(self, params, gns_params, carry, t):
+    def _frame(self, params, gns_params, material, carry, t):
         sched = self.schedule
         sim, mode, count = carry[:5], carry[5], carry[6]
         use_mpm = (t < sched.warmup) | (mode == MPM_MODE)
         sim, over = jax.lax.cond(use_mpm, lambda c: self._mpm_frame(params, c),
-                                 lambda c: self._gns_frame(params, gns_params, c), sim)
+                                 lambda c: self._gns_frame(params, gns_params, material, c),
+                                 sim)
         count = count + 1
         indicator = sim[3]
         warm = t + 1 < sched.warmup
@@ -228,7 +227,8 @@ class Hybrid:
         carry = (state, hist, nbrs, zero, zero,
                  jnp.asarray(MPM_MODE, jnp.int32), jnp.asarray(0, jnp.int32))
         ts = jnp.arange(n_frames)
-        body = lambda c, t: self._frame(params, gns_params, c, t)  # noqa: E731
+        material = self.node_material(params)  # once per rollout, not per frame
+        body = lambda c, t: self._frame(params, gns_params, material, c, t)  # noqa: E731
         B = self.checkpoint_block
         if B and n_frames > B:
             nb, rem = divmod(n_frames, B)
@@ -251,10 +251,11 @@ class Hybrid:
 
     def rollout(self, params, state, n_frames: int, nbrs, gns_params=None):
         """Traceable rollout (use under ``jax.grad``); returns ``(positions (T+1, N, 2),
-        overflowed)``; an overflow means the result is invalid (re-allocate ``nbrs``)."""
+        nodes (T+1, M, 2), overflowed)``; an overflow means the result is invalid
+        (re-allocate ``nbrs``)."""
         gp = self.gns_params if gns_params is None else gns_params
-        _, parts, _, _, over, _ = self._rollout(params, gp, state, nbrs, n_frames)
-        return parts, jnp.any(over)
+        nodes, parts, _, _, over, _ = self._rollout(params, gp, state, nbrs, n_frames)
+        return parts, nodes, jnp.any(over)
 
     def run(self, params, state, n_frames: int, nbrs=None, max_retries: int = 4):
         """Jitted rollout of ``n_frames`` GNS frames with neighbour re-allocation on overflow
@@ -272,13 +273,3 @@ class Hybrid:
             nbrs = self.gns.allocate(nodes[k], extra_capacity=extra)
         raise RuntimeError(f"neighbour list still overflowing after {max_retries} "
                            "re-allocations")
-
-    def trajectory(self, result: HybridResult, params) -> Trajectory:
-        """Particle :class:`~diffgns.trajectory.Trajectory` of a result (velocities by
-        backward differences, m/s)."""
-        pos = result.positions
-        vel = jnp.concatenate([jnp.zeros_like(pos[:1]), jnp.diff(pos, axis=0)]) / self.frame_dt
-        return Trajectory(positions=pos, velocities=vel,
-                          particle_type=jnp.asarray(self.mpm.particle_type()),
-                          material=self.mpm.material_feature(params), frame_dt=self.frame_dt,
-                          bounds=self.mpm.scene.domain)

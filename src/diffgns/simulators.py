@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .graph.data import coarse_grain_map
+from .hybrid_handoff import node_means
 from .inverse import apply_theta
 from .mpm import MPM
 from .scene_builders import column_collapse
@@ -77,9 +78,9 @@ class Column:
 
     def nodes(self, positions):
         """Particle positions (T, N, 2) -> node positions (cluster means) (T, n, 2)."""
-        s = jax.ops.segment_sum(jnp.moveaxis(positions, 1, 0), jnp.asarray(self.cluster),
-                                num_segments=self.n_nodes)
-        return jnp.moveaxis(s, 0, 1) / jnp.asarray(self.counts, positions.dtype)[:, None]
+        cluster = jnp.asarray(self.cluster)
+        counts = jnp.asarray(self.counts, positions.dtype)
+        return jax.vmap(lambda p: node_means(p.T, cluster, counts))(positions)
 
     def observe(self, positions):
         """MPM particle positions (T, N, 2) at MPM frames -> node positions
@@ -269,9 +270,9 @@ class HybridSimulator:
     def rollout(self, theta):
         """((n_obs, n, 2) node positions, overflow flag) at ``theta``."""
         params = apply_theta(self.column.mpm.params(), theta)
-        parts, overflow = self.hybrid.rollout(params, self.column.initial_state(theta),
-                                              self.n_frames, self.nbrs)
-        return self.column.nodes(parts), overflow
+        _, nodes, overflow = self.hybrid.rollout(params, self.column.initial_state(theta),
+                                                 self.n_frames, self.nbrs)
+        return nodes, overflow  # the hybrid's nodes are the column's (same clusters)
 
     def __call__(self, theta):
         return self.rollout(theta)[0]
@@ -285,10 +286,6 @@ class HybridSimulator:
 
 def hybrid_simulator(column: Column, model=DEFAULT_MODEL, loaded=None, **kw) -> HybridSimulator:
     """A :class:`HybridSimulator` for ``column`` with a trained GNS (see its arguments)."""
-    try:
-        from .hybrid import Hybrid  # noqa: F401
-    except ImportError as e:  # pragma: no cover - the module ships with diffgns
-        raise NotImplementedError("--simulator hybrid needs diffgns.hybrid.Hybrid") from e
     loaded = loaded or load_gns(model)
     _check_model(column, loaded, model)
     return HybridSimulator(column, loaded, **kw)
