@@ -5,6 +5,7 @@
     diffgns dataset --kind column --aspect-ratios 0.5 1 2 --friction-angles 25 35 45 \
         --frames 320 --out data/columns.h5
     diffgns dataset --kind squares --n 20 --frames 320 --out data/squares.h5
+    diffgns dataset --kind cylinder --n 16 --seed 0 --frames 300 --out data/cylinder_train.h5
 """
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ def _simulate(args) -> int:
 
 
 def _dataset(args) -> int:
+    if args.kind == "cylinder":
+        return _dataset_cylinder(args)
     from .datagen import generate_columns, generate_squares
 
     if args.kind == "column":
@@ -52,6 +55,25 @@ def _dataset(args) -> int:
         if args.domain_length and args.domain_height:
             kw["domain"] = ((0.0, args.domain_length), (0.0, args.domain_height))
         path = generate_squares(args.out, args.n, args.frames, seed=args.seed, **kw)
+    print(f"dataset written to {path}")
+    return 0
+
+
+def _dataset_cylinder(args) -> int:
+    from .cfd.datagen import CylinderRun, CylinderSampling, generate_cylinder
+
+    try:
+        sampling = CylinderSampling(re_range=tuple(args.re_range),
+                                    u_max_range=tuple(args.u_max_range),
+                                    radius_range=tuple(args.radius_range),
+                                    cx_range=tuple(args.cx_range), cy_range=tuple(args.cy_range))
+        run = CylinderRun(n_frames=args.frames, frame_dt=args.frame_dt, spinup=args.spinup,
+                          size_cylinder=args.size_cylinder, size_far=args.size_far,
+                          grading=args.grading, size_wake=args.size_wake or None,
+                          cfl=args.cfl)
+    except ValueError as e:
+        raise SceneError(str(e)) from e
+    path = generate_cylinder(args.out, args.n, seed=args.seed, sampling=sampling, run=run)
     print(f"dataset written to {path}")
     return 0
 
@@ -148,8 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="results/simulate")
     s.set_defaults(func=_simulate)
 
-    d = sub.add_parser("dataset", help="generate an HDF5 training set with the MPM (resumable)")
-    d.add_argument("--kind", choices=["column", "squares"], required=True)
+    d = sub.add_parser("dataset", help="generate an HDF5 training set with the MPM or, for "
+                       "--kind cylinder, the cylinder-flow CFD (resumable)")
+    d.add_argument("--kind", choices=["column", "squares", "cylinder"], required=True)
     d.add_argument("--out", required=True, help="output .h5 file (resumes if it exists)")
     d.add_argument("--frames", type=int, default=320)
     d.add_argument("--aspect-ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0])
@@ -159,10 +182,32 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--domain-length", type=float, default=None, help="fixed box length, m")
     d.add_argument("--domain-height", type=float, default=None, help="fixed box height, m")
     d.add_argument("--batch", type=int, default=4, help="friction angles rolled out together")
-    d.add_argument("--n", type=int, default=10, help="number of square-flow trajectories")
+    d.add_argument("--n", type=int, default=10,
+                   help="number of square-flow / cylinder-flow trajectories")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--dx", type=float, default=0.02, help="cell size of square flows, m")
     d.add_argument("--size", type=float, default=0.2, help="side of the squares, m")
+    c = d.add_argument_group("cylinder flow (--kind cylinder; ranges are MIN MAX, SI units)")
+    c.add_argument("--re-range", type=float, nargs=2, default=[80.0, 160.0],
+                   help="Reynolds number Ubar D / nu")
+    c.add_argument("--u-max-range", type=float, nargs=2, default=[1.0, 2.0],
+                   help="peak inflow speed Um, m/s (nu follows from Re)")
+    c.add_argument("--radius-range", type=float, nargs=2, default=[0.04, 0.06])
+    c.add_argument("--cx-range", type=float, nargs=2, default=[0.15, 0.35],
+                   help="cylinder centre x, m")
+    c.add_argument("--cy-range", type=float, nargs=2, default=[0.16, 0.25],
+                   help="cylinder centre y, m")
+    c.add_argument("--frame-dt", type=float, default=0.01, help="time between frames, s")
+    c.add_argument("--spinup", type=float, default=35.0,
+                   help="simulated time before the first stored frame, in units of D / Ubar")
+    c.add_argument("--size-cylinder", type=float, default=0.008,
+                   help="mesh edge length at the cylinder, m")
+    c.add_argument("--size-far", type=float, default=0.035, help="largest mesh edge length, m")
+    c.add_argument("--grading", type=float, default=0.25, help="mesh size growth, m/m")
+    c.add_argument("--size-wake", type=float, default=0.014,
+                   help="mesh edge length along 1 m of wake behind the cylinder, m (0: none)")
+    c.add_argument("--cfl", type=float, default=0.15,
+                   help="largest Um dt / h_min (sets the CFD time step)")
     d.set_defaults(func=_dataset)
 
     t = sub.add_parser("train", help="train a GNS on HDF5 / .npz datasets (resumable)")
