@@ -5,6 +5,10 @@
     diffgns dataset --kind column --aspect-ratios 0.5 1 2 --friction-angles 25 35 45 \
         --frames 320 --out data/columns.h5
     diffgns dataset --kind squares --n 20 --frames 320 --out data/squares.h5
+    diffgns train --kind mesh --data data/cylinder_train.h5 --latent 64 --mp-steps 8 \
+        --out runs/meshnet
+    diffgns rollout --model runs/meshnet/model --data data/cylinder_test.h5 --out results/mgn
+    diffgns symbolic --law spring
     diffgns dataset --kind cylinder --n 16 --seed 0 --frames 300 --out data/cylinder_train.h5
 """
 from __future__ import annotations
@@ -12,6 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
+import numpy as np
 
 from .errors import SceneError, UnstableError
 
@@ -82,6 +88,10 @@ def _train(args) -> int:
     from .graph.train_loop import train
     from .graph.training import TrainConfig
 
+    if args.kind == "mesh":
+        return _train_mesh(args)
+    if args.noise_std is None:
+        args.noise_std = 6.7e-4
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
                        push_forward=args.push_forward, momentum_weight=args.momentum_weight,
@@ -96,7 +106,69 @@ def _train(args) -> int:
     return 0
 
 
+def _train_mesh(args) -> int:
+    from .graph.mesh_train import train
+    from .graph.meshnet import MeshNetConfig
+    from .graph.training import TrainConfig
+
+    if len(args.data) != 1:
+        raise SceneError("--kind mesh trains on one cylinder dataset (.h5); got "
+                         f"{len(args.data)}")
+    tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
+                       lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
+                       seed=args.seed, checkpoint_every=args.checkpoint_every)
+    cfg = MeshNetConfig(latent=args.latent, mp_steps=args.mp_steps, mlp_layers=args.mlp_layers,
+                        noise_std=0.02 if args.noise_std is None else args.noise_std)
+    train(args.data[0], args.out, cfg, tcfg)
+    print(f"model written to {args.out}/model")
+    return 0
+
+
+def _rollout_mesh(args) -> int:
+    from pathlib import Path
+
+    from .graph.mesh_evaluate import evaluate_trajectory, pressure_force_coefficients
+    from .graph.mesh_train import load_cylinder, load_model
+    from .viz_mesh import animate_vorticity, plot_lift, vorticity
+
+    model, params, info = load_model(args.model)
+    traj = load_cylinder(args.data)[args.index]
+    r = evaluate_trajectory(model, params, traj, info["padding"])
+    fields = {k: r.pop(k) for k in ("velocity", "pressure", "long_pressure")}
+    print(json.dumps(r, indent=2))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "rollout_metrics.json").write_text(json.dumps(r, indent=2))
+        n, dt = len(traj["mesh_pos"]), float(traj["attrs"]["frame_dt"])
+        animate_vorticity(traj["mesh_pos"], traj["cells"],
+                          vorticity(traj["mesh_pos"], traj["cells"], traj["velocity"]),
+                          vorticity(traj["mesh_pos"], traj["cells"], fields["velocity"][:, :n]),
+                          out / "vorticity.gif", frame_dt=dt)
+        cl = {"CFD": pressure_force_coefficients(traj, traj["pressure"][1:])[1],
+              "MeshGraphNet": pressure_force_coefficients(traj, fields["long_pressure"])[1]}
+        t = np.arange(1, len(cl["MeshGraphNet"]) + 1) * dt
+        plot_lift(t, cl, out / "lift.png")
+        print(f"vorticity.gif, lift.png and rollout_metrics.json written to {out}")
+    return 0
+
+
+def _is_mesh_model(path) -> bool:
+    from pathlib import Path
+
+    meta = Path(path) / "model.json"
+    return meta.exists() and json.loads(meta.read_text()).get("kind") == "meshgraphnet"
+
+
+def _symbolic(args) -> int:
+    from .interpret.pipeline import main as run_symbolic
+
+    return run_symbolic(args)
+
+
 def _rollout(args) -> int:
+    if _is_mesh_model(args.model):
+        return _rollout_mesh(args)
     from .graph.data import load_trajectories
     from .graph.evaluate import rollout_reference, score
     from .graph.train_loop import load_model
@@ -210,7 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="largest Um dt / h_min (sets the CFD time step)")
     d.set_defaults(func=_dataset)
 
-    t = sub.add_parser("train", help="train a GNS on HDF5 / .npz datasets (resumable)")
+    t = sub.add_parser("train", help="train a GNS (particles) or a MeshGraphNet (--kind mesh, "
+                       "on a cylinder-flow dataset) (resumable)")
+    t.add_argument("--kind", choices=["particles", "mesh"], default="particles")
     t.add_argument("--data", nargs="+", required=True, help="training datasets (.h5 or .npz)")
     t.add_argument("--valid", default=None, help="validation dataset for rollouts")
     t.add_argument("--out", required=True, help="run folder (checkpoint, logs, model/)")
@@ -223,7 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--latent", type=int, default=128)
     t.add_argument("--mp-steps", type=int, default=10)
     t.add_argument("--mlp-layers", type=int, default=2)
-    t.add_argument("--noise-std", type=float, default=6.7e-4, help="random-walk noise, m")
+    t.add_argument("--noise-std", type=float, default=None,
+                   help="training noise: random walk in m (particles, default 6.7e-4) or "
+                   "velocity noise in m/s (mesh, default 0.02)")
     t.add_argument("--attention", action="store_true")
     t.add_argument("--coarse-grain", type=int, default=1, help="MPM particles per GNS node")
     t.add_argument("--frame-stride", type=int, default=1, help="MPM frames per GNS frame")
@@ -236,7 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model folder to fine-tune from (same configuration, fresh optimiser)")
     t.set_defaults(func=_train)
 
-    r = sub.add_parser("rollout", help="roll a trained GNS out against a reference trajectory")
+    r = sub.add_parser("rollout", help="roll a trained GNS or MeshGraphNet out against a "
+                       "reference trajectory and animate both")
     r.add_argument("--model", required=True, help="model folder (params.msgpack, config.json)")
     r.add_argument("--data", required=True, help="dataset with reference trajectories")
     r.add_argument("--index", type=int, default=0)
@@ -260,6 +337,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resolution of the reference MPM")
     h.add_argument("--out", default="results/hybrid")
     h.set_defaults(func=_hybrid)
+
+    from .interpret.pipeline import add_arguments
+
+    y = sub.add_parser("symbolic", help="recover n-body force laws from a message network "
+                       "by symbolic regression")
+    add_arguments(y)
+    y.set_defaults(func=_symbolic)
     return p
 
 

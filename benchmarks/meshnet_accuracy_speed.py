@@ -1,0 +1,85 @@
+"""MeshGraphNet against our CFD on held-out cylinder flows: accuracy, shedding, stability and
+cost per simulated second, in one run.
+
+    python benchmarks/meshnet_accuracy_speed.py --model models/meshnet_cylinder/model \
+        --data data/cylinder_test.h5 --out benchmarks/results/meshnet_accuracy_speed.json
+
+Per trajectory (rollout from its first frame; see ``diffgns.graph.mesh_evaluate``): velocity
+RMSE at 1, 50 and all frames, Strouhal number of the pressure lift against the CFD's, a
+rollout 3x as long checked for boundedness and periodicity, and the steady-state rollout time
+per simulated second (compile separate, median of --repeats) against the CFD wall time per
+simulated second recorded when the data was made on this machine. Also writes a lift plot and
+a side-by-side vorticity GIF of the first trajectory next to the JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import RESULTS_DIR, write_json  # noqa: E402
+
+from diffgns.graph.mesh_evaluate import evaluate_trajectory, pressure_force_coefficients  # noqa
+from diffgns.graph.mesh_train import load_cylinder, load_model  # noqa: E402
+from diffgns.viz_mesh import animate_vorticity, plot_lift, vorticity  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="models/meshnet_cylinder/model")
+    ap.add_argument("--data", default="data/cylinder_test.h5")
+    ap.add_argument("--out", default=str(RESULTS_DIR / "meshnet_accuracy_speed.json"))
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--long-factor", type=int, default=3)
+    ap.add_argument("--no-figures", action="store_true")
+    args = ap.parse_args(argv)
+    model, params, info = load_model(args.model)
+    trajs = load_cylinder(args.data)
+    rows, first = [], None
+    for traj in trajs:
+        r = evaluate_trajectory(model, params, traj, info["padding"], args.long_factor,
+                                args.repeats)
+        if first is None:
+            first = (traj, r)
+        rows.append({k: v for k, v in r.items()
+                     if k not in ("velocity", "pressure", "long_pressure")})
+        print(f"{r['key']} Re {r['reynolds']:.0f}: RMSE {r['rmse']}, St cfd "
+              f"{r['strouhal_cfd']:.4f} model {r['strouhal_model']:.4f}, stable {r['stable']}, "
+              f"model {r['model_s_per_sim_s']:.2f} s/sim-s vs CFD {r['cfd_s_per_sim_s']:.2f}")
+    mean = lambda k: float(np.mean([r[k] for r in rows]))
+    horizons = sorted({h for r in rows for h in r["rmse"]}, key=int)
+    summary = dict(
+        rmse_mean={str(h): float(np.mean([r["rmse"][h] for r in rows if h in r["rmse"]]))
+                   for h in horizons},
+        strouhal_rel_error_mean=mean("strouhal_rel_error"),
+        strouhal_rel_error_max=float(max(r["strouhal_rel_error"] for r in rows)),
+        all_stable=all(r["stable"] for r in rows),
+        model_s_per_sim_s_median=float(np.median([r["model_s_per_sim_s"] for r in rows])),
+        cfd_s_per_sim_s_median=float(np.median([r["cfd_s_per_sim_s"] for r in rows])))
+    summary["speedup_vs_cfd"] = summary["cfd_s_per_sim_s_median"] / \
+        summary["model_s_per_sim_s_median"]
+    path = write_json(args.out, dict(model=args.model, data=args.data, model_info=dict(
+        config=info["config"], steps=info.get("steps")), cases=rows, summary=summary))
+    print(f"summary: {summary}\nwritten {path}")
+    if not args.no_figures and first is not None:
+        traj, r = first
+        dt = float(traj["attrs"]["frame_dt"])
+        stem = Path(args.out).with_suffix("")
+        cl_cfd = pressure_force_coefficients(traj, traj["pressure"][1:])[1]
+        cl_gnn = pressure_force_coefficients(traj, r["long_pressure"])[1]
+        plot_lift(np.arange(1, len(cl_gnn) + 1) * dt, {"CFD": cl_cfd, "MeshGraphNet": cl_gnn},
+                  f"{stem}_lift.png")
+        n = len(traj["mesh_pos"])
+        om_cfd = vorticity(traj["mesh_pos"], traj["cells"], traj["velocity"])
+        om_gnn = vorticity(traj["mesh_pos"], traj["cells"], r["velocity"][:, :n])
+        animate_vorticity(traj["mesh_pos"], traj["cells"], om_cfd, om_gnn,
+                          f"{stem}_vorticity.gif", frame_dt=dt)
+        print(f"figures: {stem}_lift.png, {stem}_vorticity.gif")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

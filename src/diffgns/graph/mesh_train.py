@@ -1,0 +1,187 @@
+"""Training, saving and loading of MeshGraphNet models on cylinder-flow datasets.
+
+Shares the GNS training machinery: :class:`~diffgns.graph.training.TrainConfig`,
+:func:`~diffgns.graph.training.make_optimizer` (Adam, exponential decay to a floor),
+:func:`~diffgns.graph.training.save_checkpoint` / ``load_checkpoint`` (exact resume: params,
+optimiser state, step; the RNG is a function of (seed, step), :func:`step_rng`).
+
+One sample is one (trajectory, frame) pair: input velocity ``v_t`` with Gaussian noise
+(``noise_std``, m/s) on fluid nodes, target ``[v_{t+1} - v_noisy, p_{t+1}]`` normalised;
+the loss is the mean squared error over fluid and outflow nodes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization
+from tqdm import tqdm
+
+from ..cfd.dataset import iter_cylinder_dataset
+from ..dataset import read_metadata
+from .features import Normalizer, combine_std
+from .meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, MeshStats, mesh_edges, pad_mesh
+from .training import TrainConfig, load_checkpoint, make_optimizer, save_checkpoint, step_rng
+
+
+def load_cylinder(path: str | Path) -> list[dict]:
+    """Trajectories of a cylinder dataset as dicts of numpy arrays plus ``attrs``."""
+    out = []
+    for key, arrays, attrs in iter_cylinder_dataset(path):
+        out.append(dict(arrays, key=key, attrs=attrs))
+    if not out:
+        raise ValueError(f"{path}: no trajectories")
+    return out
+
+
+def padding_for(trajs: list[dict], multiple: int = 64) -> tuple[int, int]:
+    """(n_nodes, n_edges) padding that fits every mesh, rounded up to ``multiple``."""
+    n = max(len(t["mesh_pos"]) for t in trajs)
+    e = max(len(mesh_edges(t["cells"])[0]) for t in trajs)
+    up = lambda x: int(-(-(x + 1) // multiple) * multiple)
+    return up(n), up(e)
+
+
+def stats_from_metadata(meta: dict, trajs: list[dict], noise_std: float) -> MeshStats:
+    """Normalisers from the dataset metadata (noise folded into the stds) and the mean mesh
+    edge length of ``trajs`` as the edge scale."""
+    f = jnp.result_type(float)
+    vel = Normalizer(jnp.asarray(meta["velocity_mean"], f),
+                     combine_std(meta["velocity_std"], noise_std))
+    t_mean = [*meta["velocity_change_mean"], meta["pressure_mean"]]
+    t_std = [*np.asarray(combine_std(meta["velocity_change_std"], noise_std)).tolist(),
+             meta["pressure_std"]]
+    lengths = []
+    for t in trajs:
+        s, r = mesh_edges(t["cells"])
+        lengths.append(np.linalg.norm(t["mesh_pos"][s] - t["mesh_pos"][r], axis=1))
+    scale = float(np.mean(np.concatenate(lengths)))
+    return MeshStats(vel, Normalizer(jnp.asarray(t_mean, f), jnp.asarray(t_std, f)), scale)
+
+
+def graphs_of(trajs: list[dict], padding: tuple[int, int]) -> MeshGraph:
+    """Stacked padded graphs (leading axis = trajectory)."""
+    gs = [pad_mesh(t["mesh_pos"], t["cells"], t["node_type"], *padding) for t in trajs]
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gs)
+
+
+def padded_fields(trajs: list[dict], n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """velocity (B, F, n_nodes, 2) and pressure (B, F, n_nodes), zero-padded, float32;
+    all trajectories must have the same number of frames."""
+    F = {len(t["velocity"]) for t in trajs}
+    if len(F) != 1:
+        raise ValueError(f"trajectories differ in length {sorted(F)}")
+    (F,) = F
+    v = np.zeros((len(trajs), F, n_nodes, 2), np.float32)
+    p = np.zeros((len(trajs), F, n_nodes), np.float32)
+    for i, t in enumerate(trajs):
+        v[i, :, : len(t["mesh_pos"])] = t["velocity"]
+        p[i, :, : len(t["mesh_pos"])] = t["pressure"]
+    return v, p
+
+
+def save_model(out: Path, model: MeshNet, params, padding, info: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "params.msgpack").write_bytes(serialization.to_bytes(params))
+    st = model.stats
+    (out / "model.json").write_text(json.dumps(dict(
+        kind="meshgraphnet", config=dataclasses.asdict(model.config), padding=list(padding),
+        stats=dict(velocity_mean=np.asarray(st.velocity.mean).tolist(),
+                   velocity_std=np.asarray(st.velocity.std).tolist(),
+                   target_mean=np.asarray(st.target.mean).tolist(),
+                   target_std=np.asarray(st.target.std).tolist(), edge_scale=st.edge_scale),
+        **info), indent=2, default=str))
+
+
+def load_model(path: str | Path):
+    """(model, params, info) from a folder written by :func:`save_model`."""
+    path = Path(path)
+    info = json.loads((path / "model.json").read_text())
+    s = info["stats"]
+    f = jnp.result_type(float)
+    stats = MeshStats(Normalizer(jnp.asarray(s["velocity_mean"], f),
+                                 jnp.asarray(s["velocity_std"], f)),
+                      Normalizer(jnp.asarray(s["target_mean"], f),
+                                 jnp.asarray(s["target_std"], f)), float(s["edge_scale"]))
+    model = MeshNet(MeshNetConfig(**info["config"]), stats)
+    n, e = info["padding"]
+    dummy = MeshGraph(jnp.zeros((n, 2)), jnp.zeros(n, jnp.int32), jnp.zeros(e, jnp.int32),
+                      jnp.zeros(e, jnp.int32), jnp.zeros(e, bool))
+    params = serialization.from_bytes(model.init(jax.random.PRNGKey(0), dummy),
+                                      (path / "params.msgpack").read_bytes())
+    return model, params, info
+
+
+def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key):
+    noise = model.config.noise_std * jax.random.normal(key, v.shape, v.dtype)
+    v_in = v + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
+    target = jnp.concatenate([v_next - v_in, p_next[:, None]], axis=-1)
+    err = model.normalized_output(params, graph, v_in) - model.stats.target.normalize(target)
+    w = graph.predicted.astype(err.dtype)
+    return jnp.sum(w[:, None] * err**2) / (3 * jnp.maximum(w.sum(), 1.0))
+
+
+def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=None,
+          progress: bool = True):
+    """Train (or resume) a MeshGraphNet; writes checkpoints, ``train_log.csv`` and
+    ``out_dir/model``. Returns (model, params)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    trajs = load_cylinder(train_path)
+    padding = tuple(padding or padding_for(trajs))
+    model = MeshNet(cfg, stats_from_metadata(read_metadata(train_path), trajs, cfg.noise_std))
+    graphs = graphs_of(trajs, padding)
+    vel, pres = padded_fields(trajs, padding[0])
+    opt = make_optimizer(tcfg)
+    params = model.init(jax.random.PRNGKey(tcfg.seed),
+                        jax.tree_util.tree_map(lambda a: a[0], graphs))
+    opt_state, step = opt.init(params), 0
+    ckpt = out / "checkpoint.msgpack"
+    if ckpt.exists():
+        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
+
+    def batch_loss(params, g, v, vn, pn, key):
+        keys = jax.random.split(key, v.shape[0])
+        f = lambda *a: _loss(model, params, *a)
+        return jax.vmap(f)(g, v, vn, pn, keys).mean()
+
+    @jax.jit
+    def update(params, opt_state, g, v, vn, pn, key):
+        loss, grads = jax.value_and_grad(batch_loss)(params, g, v, vn, pn, key)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss
+
+    info = dict(train=dataclasses.asdict(tcfg), data=str(train_path),
+                n_trajectories=len(trajs), frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
+    log = (out / "train_log.csv").open("a")
+    if step == 0:
+        log.write("step,loss,seconds\n")
+    t0, hist = time.perf_counter(), []
+    bar = tqdm(total=tcfg.steps, initial=step, desc="meshgraphnet", disable=not progress)
+    B, F = tcfg.batch_size, vel.shape[1]
+    while step < tcfg.steps:
+        rng, key = step_rng(tcfg.seed, step)
+        ti, fi = rng.integers(0, len(trajs), B), rng.integers(0, F - 1, B)
+        g = jax.tree_util.tree_map(lambda a, ti=ti: a[ti], graphs)
+        params, opt_state, loss = update(params, opt_state, g, vel[ti, fi], vel[ti, fi + 1],
+                                         pres[ti, fi + 1], key)
+        step += 1
+        hist.append(float(loss))
+        bar.update(1)
+        if step % tcfg.log_every == 0 or step == tcfg.steps:
+            log.write(f"{step},{np.mean(hist):.6g},{time.perf_counter() - t0:.1f}\n")
+            log.flush()
+            bar.set_postfix(loss=f"{np.mean(hist):.4f}")
+            hist = []
+        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
+            save_checkpoint(ckpt, params, opt_state, step, info)
+    bar.close()
+    log.close()
+    save_model(out / "model", model, params, padding, dict(info, steps=step))
+    return model, params

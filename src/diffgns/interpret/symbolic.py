@@ -1,0 +1,207 @@
+"""Symbolic regression with pyoperon: Pareto front, complexity, selection, dimensions.
+
+pyoperon (a C++ genetic-programming library, installed as a wheel, offline) searches
+expressions over the operators below with local constant fitting, minimising mean absolute
+error and length (NSGA-II). We then
+
+1. score every front expression with our own **complexity**: one per operator, constant and
+   variable, three for ``pow``, ``exp`` and ``log``. pyoperon attaches a fitted weight to
+   every variable (``w * x``); such a weighted variable counts 3 (constant, product,
+   variable). ``<``/``>`` are searched as ``min``/``max`` (the piecewise selections they
+   express); an inverse is a division.
+2. keep the Pareto front of complexity against mean absolute error;
+3. check every front expression for **dimensional consistency** (:mod:`.units`) on pyoperon's
+   own tree, where the fitted weight of a variable is a pure number (so ``w * x`` keeps the
+   unit of ``x``) and every free constant node is a wildcard that may carry any unit. Hence
+   ``88 d - 91 r_i`` is a length (and times a free constant, a force), while ``88 d + 2 m_i``
+   or ``exp(2.5 d)`` are rejected: a length scale inside ``exp`` must be a free constant
+   (``exp(d / c)``), not a variable weight. (Were the weights wildcards too, every pyoperon
+   expression would pass and the check would say nothing.)
+4. **select** the expression that maximises the fractional drop in error per unit of added
+   complexity, ``-dlog(MAE)/dc`` between consecutive front members, among the dimensionally
+   consistent ones when there are any.
+
+Genetic programming is stochastic: results depend on the seed and on the thread count, which
+are both parameters here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import sympy
+
+from . import units as _units
+
+OPERATORS = "add,sub,mul,div,fmin,fmax,pow,exp,log,constant,variable"
+_HEAVY = ("Pow", "Exp", "Log")
+
+
+@dataclasses.dataclass
+class Candidate:
+    """One expression of the front."""
+
+    text: str
+    expr: sympy.Expr
+    complexity: int
+    mae: float
+    consistent: bool
+    dim_note: str
+    score: float = 0.0
+    selected: bool = False
+
+    def row(self) -> dict:
+        return dict(expression=str(self.expr.evalf(5)), complexity=self.complexity,
+                    mae=self.mae, score=self.score, consistent=self.consistent,
+                    dimensions=self.dim_note, selected=self.selected)
+
+
+def complexity(tree) -> int:
+    """Weighted size of a pyoperon tree (see the module docstring)."""
+    total = 0
+    for node in tree.Nodes:
+        kind = str(node.Type).split(".")[-1]
+        if kind == "Variable":
+            total += 1 if node.Value == 1.0 else 3
+        elif kind in _HEAVY:
+            total += 3
+        else:
+            total += 1
+    return total
+
+
+_UNIT_OPS = {"Add": "add", "Sub": "add", "Fmin": "add", "Fmax": "add", "Mul": "mul",
+             "Div": "div", "Aq": "div", "Abs": "abs", "Square": "square", "Sqrt": "sqrt",
+             "Sqrtabs": "sqrt", "Cbrt": "cbrt", "Pow": "pow"}
+
+
+def tree_units(tree, names_by_hash: dict, units: dict[str, str], target: str | None):
+    """(consistent, note): dimensional verdict on a pyoperon tree (rules in the module doc)."""
+    vec = _units.parse_units(units)
+    stack: list = []
+    try:
+        for node in tree.Nodes:  # postfix; a node's first child is pushed last
+            kind = str(node.Type).split(".")[-1]
+            if kind == "Variable":
+                stack.append(vec[names_by_hash[node.HashValue]])
+                continue
+            if kind == "Constant":
+                stack.append((_units.WILD, float(node.Value)))
+                continue
+            args = [stack.pop() for _ in range(node.Arity)]
+            vals = [a[1] if isinstance(a, tuple) else None for a in args]
+            us = [a[0] if isinstance(a, tuple) else a for a in args]
+            op = _UNIT_OPS.get(kind, "func")
+            if node.Arity == 1 and kind == "Div":
+                op = "inv"
+            elif node.Arity == 1 and kind == "Sub":
+                op = "abs"  # negation keeps the unit
+            if op == "pow":
+                out = _units.apply("pow", us[:1], kind, power=vals[1]) if vals[1] is not None \
+                    else _units.apply("pow", us, kind)
+            elif op in ("square", "sqrt", "cbrt"):
+                out = _units.apply("pow", us, kind, power={"square": 2.0, "sqrt": 0.5,
+                                                           "cbrt": 1 / 3}[op])
+            else:
+                out = us[0]
+                for u in us[1:]:
+                    out = _units.apply(op, [out, u], kind)
+                if op != "add" and node.Arity == 1:
+                    out = _units.apply(op, us, kind)
+            stack.append(out)
+    except _units.DimensionError as err:
+        return False, str(err)
+    (result,) = stack
+    return _units.verdict(result[0] if isinstance(result, tuple) else result, target)
+
+
+def to_sympy(text: str, names: list[str]) -> sympy.Expr:
+    """pyoperon's infix string -> sympy expression over symbols ``names``."""
+    local = {n: sympy.Symbol(n, real=True) for n in names}
+    local.update(max=sympy.Max, min=sympy.Min, exp=sympy.exp, log=sympy.log)
+    return sympy.sympify(text.replace("^", "**"), locals=local)
+
+
+def pareto(cands: list[Candidate]) -> list[Candidate]:
+    """Non-dominated candidates by (complexity, MAE), sorted by complexity."""
+    front, best = [], np.inf
+    for c in sorted(cands, key=lambda c: (c.complexity, c.mae)):
+        if c.mae < best * (1 - 1e-9):
+            front.append(c)
+            best = c.mae
+    return front
+
+
+def select(front: list[Candidate], prefer_consistent: bool = True) -> Candidate:
+    """Mark and return the front member with the largest ``-dlog(MAE)/dc``.
+
+    Scores are computed between consecutive members of the front restricted to consistent
+    expressions (when ``prefer_consistent`` and any exist), else of the whole front.
+    """
+    pool = [c for c in front if c.consistent] if prefer_consistent else list(front)
+    pool = pool or list(front)
+    for c in front:
+        c.score, c.selected = 0.0, False
+    prev = None
+    for c in pool:
+        if prev is not None:
+            c.score = float(-(np.log(max(c.mae, 1e-300)) - np.log(max(prev.mae, 1e-300)))
+                            / max(c.complexity - prev.complexity, 1))
+        prev = c
+    best = max(pool, key=lambda c: c.score)
+    best.selected = True
+    return best
+
+
+def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str],
+            target_unit: str | None, seed: int = 0, n_threads: int = 1,
+            generations: int = 300, population: int = 1000, max_length: int = 30,
+            max_seconds: int = 300) -> tuple[list[Candidate], Candidate, dict]:
+    """Run pyoperon on (X (n, p), y (n,)); returns (front, selected, run info).
+
+    ``names`` label the columns of X, ``units`` give each name's unit (:mod:`.units` syntax)
+    and ``target_unit`` the unit y must have (None: y's unit is arbitrary).
+    """
+    from pyoperon.sklearn import SymbolicRegressor
+
+    X, y = np.asarray(X, np.float64), np.asarray(y, np.float64)
+    if X.ndim != 2 or X.shape[1] != len(names) or len(y) != len(X):
+        raise ValueError(f"X must be (n, {len(names)}) and y (n,), got {X.shape}, {y.shape}")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(y))):
+        raise ValueError("X and y must be finite")
+    reg = SymbolicRegressor(
+        allowed_symbols=OPERATORS, objectives=["mae", "length"], max_length=max_length,
+        generations=generations, population_size=population, n_threads=n_threads,
+        random_state=seed, max_evaluations=10**7, max_time=max_seconds,
+        optimizer_iterations=5)
+    t0 = time.perf_counter()
+    reg.fit(X, y)
+    seconds = time.perf_counter() - t0
+    cands = []
+    for sol in reg.pareto_front_:
+        text = reg.get_model_string(sol["tree"], 6, names)
+        pred = reg.evaluate_model(sol["tree"], X)
+        if not np.all(np.isfinite(pred)):
+            continue
+        expr = to_sympy(text, names)
+        hashes = {k: names[i] for i, k in enumerate(reg.variables_)}
+        ok, note = tree_units(sol["tree"], hashes, units, target_unit)
+        cands.append(Candidate(text, expr, complexity(sol["tree"]),
+                               float(np.mean(np.abs(pred - y))), ok, note))
+    front = pareto(cands)
+    best = select(front)
+    return front, best, dict(seconds=seconds, samples=len(y), seed=seed, n_threads=n_threads,
+                             generations=generations, population=population)
+
+
+def linear_coefficients(expr: sympy.Expr, names: list[str]) -> dict[str, float] | None:
+    """Coefficients of ``expr`` if it is affine in its variables (else None); key "1" is the
+    constant term."""
+    syms = sorted(expr.free_symbols, key=str)
+    poly = sympy.Poly(sympy.expand(expr), *syms) if syms else None
+    if poly is None or poly.total_degree() > 1:
+        return None
+    out = {str(s): float(poly.coeff_monomial(s)) for s in syms}
+    out["1"] = float(poly.coeff_monomial(1))
+    return out

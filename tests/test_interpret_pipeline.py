@@ -1,0 +1,54 @@
+"""The shipped message networks: the premise on held-out edges, and the whole pipeline (slow)."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diffgns.interpret import message_net, messages, nbody_data, pipeline
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+@pytest.fixture(scope="module", params=["spring", "inverse_square"])
+def shipped(request, tmp_path_factory):
+    law = request.param
+    net, norm, params, info = message_net.load(MODELS / f"message_net_{law}" / "model")
+    cfg = pipeline.SYSTEMS[law]
+    folder = tmp_path_factory.mktemp(law)
+    # held-out systems: seeds the training set (seed 0) never used
+    test = nbody_data.generate(folder / "t.h5", cfg, 2, pipeline.FRAMES[law], seed=7,
+                               progress=False)
+    train = nbody_data.generate(folder / "c.h5", cfg, 2, pipeline.FRAMES[law], seed=0,
+                                progress=False)
+    return law, net, norm, params, nbody_data.edge_samples(*nbody_data.load(test)), \
+        nbody_data.edge_samples(*nbody_data.load(train))
+
+
+# issue target 0.95 (spring); the inverse-square network measured 0.945 / 0.942
+R2_MIN = {"spring": 0.95, "inverse_square": 0.92}
+# the force recovered from both components (calibrated here on 2 training trajectories only)
+R2_FORCE_MIN = {"spring": 0.95, "inverse_square": 0.88}
+
+
+def test_top_messages_are_linear_in_the_true_force(shipped):
+    """On 10,000 held-out edges the two top components are linear in the force."""
+    law, net, norm, params, test, train = shipped
+    contact = law == "spring"
+    te = messages.edge_messages(net, norm, params, test, 10000, seed=1)
+    assert len(te["messages"]) == 10000
+    tr = messages.edge_messages(net, norm, params, train, 20000, seed=0, contact_only=contact)
+    s = messages.summarise(tr, te)
+    assert min(s["r2_top"]) >= R2_MIN[law], s
+    assert s["r2_force_from_top"] >= R2_FORCE_MIN[law], s  # and together they determine it
+
+
+@pytest.mark.slow
+def test_pipeline_recovers_spring_law(tmp_path):
+    res = pipeline.run("spring", tmp_path, tmp_path / "data",
+                       model=str(MODELS / "message_net_spring" / "model"), sr_seconds=120,
+                       progress=False)
+    assert res["check"]["equivalent"], res["check"]
+    assert abs(res["check"]["k"] - 100) < 1.0
+    assert res["sr_force"]["selected"]["consistent"]
+    assert (tmp_path / "front.png").exists() and (tmp_path / "fronts.md").exists()
+    assert np.isfinite(res["premise_all_edges"]["r2_force_from_top"])
