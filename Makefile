@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= results/inverse
 
-.PHONY: demo collapse test test-slow bench bench-gns lint venv
+.PHONY: demo collapse test test-slow bench bench-gns symbolic lint venv
 
 $(VENV)/.installed-%: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,6 +21,10 @@ demo: $(VENV)/.installed-test
 
 collapse: $(VENV)/.installed-test
 	$(PY) examples/column_collapse_demo.py --out results/demo
+
+# recover the n-body force laws from the shipped message networks (~17 min)
+symbolic: $(VENV)/.installed-test
+	$(PY) examples/symbolic_regression.py --out results/symbolic
 
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
 
 import jax
@@ -21,13 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import serialization
-from tqdm import tqdm
 
 from ..cfd.dataset import iter_cylinder_dataset
 from ..dataset import read_metadata
 from .features import Normalizer, combine_std
 from .meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, MeshStats, mesh_edges, pad_mesh
-from .training import TrainConfig, load_checkpoint, make_optimizer, save_checkpoint, step_rng
+from .training import TrainConfig, fit_loop, load_checkpoint, make_optimizer, step_rng
 
 
 def load_cylinder(path: str | Path) -> list[dict]:
@@ -159,29 +157,17 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
 
     info = dict(train=dataclasses.asdict(tcfg), data=str(train_path),
                 n_trajectories=len(trajs), frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
-    log = (out / "train_log.csv").open("a")
-    if step == 0:
-        log.write("step,loss,seconds\n")
-    t0, hist = time.perf_counter(), []
-    bar = tqdm(total=tcfg.steps, initial=step, desc="meshgraphnet", disable=not progress)
     B, F = tcfg.batch_size, vel.shape[1]
-    while step < tcfg.steps:
+
+    def one_step(params, opt_state, step):
         rng, key = step_rng(tcfg.seed, step)
         ti, fi = rng.integers(0, len(trajs), B), rng.integers(0, F - 1, B)
-        g = jax.tree_util.tree_map(lambda a, ti=ti: a[ti], graphs)
+        g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
         params, opt_state, loss = update(params, opt_state, g, vel[ti, fi], vel[ti, fi + 1],
                                          pres[ti, fi + 1], key)
-        step += 1
-        hist.append(float(loss))
-        bar.update(1)
-        if step % tcfg.log_every == 0 or step == tcfg.steps:
-            log.write(f"{step},{np.mean(hist):.6g},{time.perf_counter() - t0:.1f}\n")
-            log.flush()
-            bar.set_postfix(loss=f"{np.mean(hist):.4f}")
-            hist = []
-        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
-            save_checkpoint(ckpt, params, opt_state, step, info)
-    bar.close()
-    log.close()
+        return params, opt_state, (loss,)
+
+    params, opt_state, step = fit_loop(one_step, params, opt_state, step, tcfg, out, info,
+                                       ["loss"], "meshgraphnet", progress)
     save_model(out / "model", model, params, padding, dict(info, steps=step))
     return model, params

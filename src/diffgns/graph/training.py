@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -19,6 +20,7 @@ import numpy as np
 import optax
 from flax import serialization
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm import tqdm
 
 from ..trajectory import KINEMATIC
 from .features import random_walk_noise, target_acceleration
@@ -190,3 +192,39 @@ def timed_steps(trainer: Trainer, params, opt_state, batch, nbrs, n: int = 5) ->
         jax.block_until_ready(trainer.step(params, opt_state, batch, nbrs, key))
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts))
+
+
+def fit_loop(update, params, opt_state, step: int, tcfg: TrainConfig, out: Path, info: dict,
+             columns: Sequence[str], desc: str = "train", progress: bool = True):
+    """The optimiser loop shared by the MeshGraphNet and message-network trainers.
+
+    ``update(params, opt_state, step) -> (params, opt_state, metrics)`` does one step (it
+    draws its batch and key from ``step``, e.g. with :func:`step_rng`, so a resumed run
+    repeats an uninterrupted one exactly); ``metrics`` are scalars named by ``columns``.
+    Appends their means over every ``log_every`` steps to ``out/train_log.csv`` (with the
+    seconds since this call) and writes ``out/checkpoint.msgpack`` every
+    ``checkpoint_every`` steps and at the end. Returns (params, opt_state, step).
+    """
+    ckpt = Path(out) / "checkpoint.msgpack"
+    log = (Path(out) / "train_log.csv").open("a")
+    if step == 0:
+        log.write(",".join(["step", *columns, "seconds"]) + "\n")
+    t0, hist = time.perf_counter(), []
+    bar = tqdm(total=tcfg.steps, initial=step, desc=desc, disable=not progress)
+    while step < tcfg.steps:
+        params, opt_state, metrics = update(params, opt_state, step)
+        step += 1
+        hist.append([float(m) for m in metrics])
+        bar.update(1)
+        if step % tcfg.log_every == 0 or step == tcfg.steps:
+            mean = np.mean(hist, axis=0)
+            log.write(f"{step}," + ",".join(f"{m:.6g}" for m in mean)
+                      + f",{time.perf_counter() - t0:.1f}\n")
+            log.flush()
+            bar.set_postfix({c: f"{m:.4g}" for c, m in zip(columns, mean)})
+            hist = []
+        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
+            save_checkpoint(ckpt, params, opt_state, step, info)
+    bar.close()
+    log.close()
+    return params, opt_state, step

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
 
 import flax.linen as nn
@@ -27,10 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import serialization
-from tqdm import tqdm
 
 from ..graph.networks import MLP
-from ..graph.training import TrainConfig, load_checkpoint, make_optimizer, save_checkpoint, step_rng
+from ..graph.training import TrainConfig, fit_loop, load_checkpoint, make_optimizer, step_rng
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,30 +188,17 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
     if ckpt.exists():
         params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
     info = dict(train=dataclasses.asdict(tcfg), n_graphs=int(len(samples["edges"])))
-    log = (out / "train_log.csv").open("a")
-    if step == 0:
-        log.write("step,loss,fit,message_l1,seconds\n")
-    n_graphs, t0, hist = len(samples["edges"]), time.perf_counter(), []
-    bar = tqdm(total=tcfg.steps, initial=step, desc="message net", disable=not progress)
-    while step < tcfg.steps:
+    n_graphs = len(samples["edges"])
+
+    def one_step(params, opt_state, step):
         rng, _ = step_rng(tcfg.seed, step)
         idx = rng.integers(0, n_graphs, tcfg.batch_size)
         params, opt_state, loss, (fit, l1) = update(
             params, opt_state, samples["edges"][idx], samples["node"][idx], samples["acc"][idx],
             min(1.0, step / cfg.l1_warmup) if cfg.l1_warmup else 1.0)
-        step += 1
-        hist.append((float(loss), float(fit), float(l1)))
-        bar.update(1)
-        if step % tcfg.log_every == 0 or step == tcfg.steps:
-            m = np.mean(hist, axis=0)
-            log.write(f"{step},{m[0]:.6g},{m[1]:.6g},{m[2]:.6g},"
-                      f"{time.perf_counter() - t0:.1f}\n")
-            log.flush()
-            bar.set_postfix(fit=f"{m[1]:.4f}", l1=f"{m[2]:.3f}")
-            hist = []
-        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
-            save_checkpoint(ckpt, params, opt_state, step, info)
-    bar.close()
-    log.close()
+        return params, opt_state, (loss, fit, l1)
+
+    params, opt_state, step = fit_loop(one_step, params, opt_state, step, tcfg, out, info,
+                                       ["loss", "fit", "message_l1"], "message net", progress)
     save(out / "model", cfg, norm, params, dict(info, steps=step))
     return net, norm, params

@@ -10,6 +10,9 @@ Two regressions are run on test edges:
 * ``force``: the force read out of the top message components (linear gauge fixed on training
   edges, :func:`.messages.radial_force`), projected on the line of centres, in N, as a function
   of (d, m_i, m_j, r_i, r_j). This is the closed-form law, and the one checked against truth.
+  The edge model sees the receiver's mass, so its messages may carry the force or the force
+  over that mass (the receiver's acceleration due to the sender); the premise test scores both
+  and the better one is used (``gauge``), in N or m/s^2.
 * ``component``: the raw top message component, in the network's arbitrary units, as a
   function of (dx, dy, d, m_i, m_j, r_i, r_j): the paper's direct fit, whose direction factor
   the regression has to find too.
@@ -61,11 +64,16 @@ def datasets(law: str, data_dir: str | Path, n_train: int = 30, n_test: int = 10
     return train, test
 
 
-def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray) -> dict:
-    """Compare a selected ``force`` expression with the true law on the samples X (n, 5)."""
+def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray, gauge: str = "force") -> dict:
+    """Compare a selected ``force`` expression with the true law on the samples X (n, 5).
+
+    In the ``"acceleration"`` gauge the expression is F / m_i; it is multiplied by m_i first.
+    """
     import sympy
 
-    out = dict(expression=str(expr.evalf(6)))
+    out = dict(expression=str(expr.evalf(6)), gauge=gauge)
+    if gauge == "acceleration":
+        expr = sympy.expand(expr * sympy.Symbol("m_i", real=True))
     if law == "spring":
         coef = symbolic.linear_coefficients(expr, FORCE_FEATURES)
         out["linear_coefficients"] = coef
@@ -168,9 +176,11 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(te["messages"]), min(sr_samples, len(te["messages"])), replace=False)
     sub = {k: v[pick] for k, v in te.items()}
+    gauge = res["premise_all_edges"]["gauge"]
     targets = {
         "force": (_columns(sub, FORCE_FEATURES), messages.radial_force(
-            sub["messages"][:, top[:2]], W, sub["features"]), FORCE_FEATURES, "N"),
+            sub["messages"][:, top[:2]], W, sub["features"]), FORCE_FEATURES,
+            "N" if gauge == "force" else "m/s^2"),
         "component": (_columns(sub, COMPONENT_FEATURES), sub["messages"][:, top[0]],
                       COMPONENT_FEATURES, None),
     }
@@ -184,7 +194,7 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
         tables.append(front_table(front, f"{law}: {name} ({info['samples']} test edges, "
                                          f"{info['seconds']:.0f} s)"))
         if name == "force":
-            res["check"] = check_law(law, best.expr, cfg, X)
+            res["check"] = check_law(law, best.expr, cfg, X, gauge)
     (out / "fronts.md").write_text("\n".join(tables))
     plot_fronts(fronts, out / "front.png")
     (out / "results.json").write_text(json.dumps(res, indent=2, default=str))
