@@ -35,9 +35,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--long-factor", type=int, default=3)
     ap.add_argument("--no-figures", action="store_true")
+    ap.add_argument("--cases", type=int, default=None, help="evaluate only the first N cases")
     args = ap.parse_args(argv)
     model, params, info = load_model(args.model)
-    trajs = load_cylinder(args.data)
+    trajs = load_cylinder(args.data)[: args.cases]
     rows, first = [], None
     for traj in trajs:
         r = evaluate_trajectory(model, params, traj, info["padding"], args.long_factor,
