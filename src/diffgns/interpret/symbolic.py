@@ -22,7 +22,8 @@ error and length (NSGA-II). We then
    consistent ones when there are any.
 
 Genetic programming is stochastic: results depend on the seed and on the thread count, which
-are both parameters here.
+are both parameters here, and, when ``max_seconds`` stops the search before ``generations``
+does, on the speed of the machine (tests therefore bound the search by generations).
 """
 from __future__ import annotations
 
