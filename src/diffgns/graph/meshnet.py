@@ -123,6 +123,8 @@ class MeshNet:
         self.config, self.stats = config, stats
         self.net = EncodeProcessDecode(latent=config.latent, mp_steps=config.mp_steps,
                                        mlp_layers=config.mlp_layers, n_types=PAD + 1, out=3)
+        # one compiled rollout per (padding, n_frames), shared by every call on this model
+        self.rollout_jit = jax.jit(self.rollout, static_argnums=3)
 
     def _inputs(self, graph: MeshGraph, velocity):
         v = self.stats.velocity.normalize(velocity)

@@ -57,7 +57,6 @@ class MessageNetConfig:
     loss: str = "mse"
     node_l2: float = 1e-4
     l1_warmup: int = 0
-    msg_init_scale: float = 1.0
 
     def __post_init__(self):
         if self.node_l2 < 0 or self.l1_weight < 0:
@@ -170,9 +169,6 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
     recv = jnp.asarray(samples["receivers"])
     params = net.init(jax.random.PRNGKey(tcfg.seed), jnp.zeros(samples["edges"].shape[1:]),
                       jnp.zeros(samples["node"].shape[1:]), recv)
-    if cfg.msg_init_scale != 1.0:
-        out_layer = params["params"]["edge_model"]["out"]
-        out_layer["kernel"] = out_layer["kernel"] * cfg.msg_init_scale
     opt = make_optimizer(tcfg)
     opt_state = opt.init(params)
     loss_fn = make_loss(net, norm, recv)

@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 from .message_net import forward
+from .nbody_data import EDGE_FEATURES
 
 
 def edge_messages(net, norm, params, samples: dict, max_edges: int | None = None,
@@ -81,7 +82,7 @@ def radial_force(top: np.ndarray, W: np.ndarray, features: np.ndarray) -> np.nda
 
 
 GAUGES = ("force", "acceleration")
-_M_I = 5  # column of the receiver mass in the edge features
+_M_I = EDGE_FEATURES.index("m_i")  # column of the receiver mass in the edge features
 
 
 def gauge_target(edges: dict, gauge: str) -> np.ndarray:
