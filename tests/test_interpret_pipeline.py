@@ -52,3 +52,25 @@ def test_pipeline_recovers_spring_law(tmp_path):
     assert res["sr_force"]["selected"]["consistent"]
     assert (tmp_path / "front.png").exists() and (tmp_path / "fronts.md").exists()
     assert np.isfinite(res["premise_all_edges"]["r2_force_from_top"])
+
+
+@pytest.mark.parametrize("text, gauge, equivalent", [
+    ("-0.995*m_j/d**2 - 0.001", "acceleration", True),   # bias 0.1% of the mean |a|
+    ("-0.995*m_i*m_j/d**2", "force", True),
+    ("-0.995*m_j/d**2 - 0.05", "acceleration", False),   # bias of 5%
+    ("-0.97*m_j/d**2", "acceleration", False),           # G 3% off
+    ("-0.995*m_j/d**1.9", "acceleration", False),        # wrong exponent: ratio spreads
+    ("-0.995*m_i/d**2", "acceleration", False),          # the wrong mass
+])
+def test_inverse_square_law_check(text, gauge, equivalent):
+    import sympy
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    X = np.stack([rng.uniform(0.3, 2.0, n), rng.uniform(0.5, 2, n), rng.uniform(0.5, 2, n),
+                  rng.uniform(0.1, 0.2, n), rng.uniform(0.1, 0.2, n)], axis=1)
+    syms = {s: sympy.Symbol(s, real=True) for s in pipeline.FORCE_FEATURES}
+    expr = sympy.sympify(text, locals=syms)
+    out = pipeline.check_law("inverse_square", expr, pipeline.SYSTEMS["inverse_square"], X,
+                             gauge)
+    assert out["equivalent"] is equivalent, out

@@ -114,3 +114,36 @@ def test_tree_units_on_pyoperon_trees():
     two = op.Node.Constant(2.0)
     assert check([two, d, op.Node.Pow()], "m^2")           # (88 d)^2
     assert not check([op.Node.Constant(1.37), d, op.Node.Pow()], None)
+
+
+def test_snapped_power_law_refits_and_passes_the_dimensional_check():
+    """A fitted exponent is never exactly rational: -1.977 is snapped to -2, the remaining
+    constants refitted, and the snapped law passes the check its parent fails."""
+    import pyoperon as op
+
+    rng = np.random.default_rng(0)
+    d_val = rng.uniform(0.2, 2.0, 500)
+    y = -1.3 / d_val**2 + 0.01
+    tree = op.InfixParser.Parse("0.02 + (-1.2 * (d ^ -1.977))", {"d": 1})
+    names = {1: "d"}
+
+    def evaluate(t):
+        text = op.InfixFormatter.Format(t, names, 12)
+        return sympy.lambdify(S["d"], symbolic.to_sympy(text, ["d"]), "numpy")(d_val)
+
+    assert not symbolic.tree_units(tree, names, U, "N")[0]
+    snapped = symbolic.snap_powers(tree, evaluate, y, tol=0.1)
+    assert symbolic.tree_units(snapped, names, U, "N")[0]
+    np.testing.assert_allclose(evaluate(snapped), y, atol=1e-6)  # -1.3 / d^2 + 0.01 exactly
+    assert [n.Value for n in tree.Nodes][0] == pytest.approx(-1.977)  # the parent unchanged
+    # nothing within tolerance of a half-integer: no copy
+    far = op.InfixParser.Parse("-1.2 * (d ^ -1.75)", {"d": 1})
+    assert symbolic.snap_powers(far, evaluate, y, tol=0.1) is None
+
+
+def test_merged_front_keeps_consistent_expressions_dominated_by_inconsistent_ones():
+    cands = [_cand(3, 5.0), _cand(9, 0.10, ok=False), _cand(9, 0.12), _cand(12, 0.09, ok=False)]
+    front = symbolic.merge_fronts(cands)
+    assert [(c.complexity, c.mae) for c in front] == [(3, 5.0), (9, 0.10), (9, 0.12),
+                                                      (12, 0.09)]
+    assert symbolic.select(front).mae == 0.12  # the consistent 9 is chosen

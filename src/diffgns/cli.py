@@ -116,7 +116,8 @@ def _train_mesh(args) -> int:
                          f"{len(args.data)}")
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
-                       seed=args.seed, checkpoint_every=args.checkpoint_every)
+                       push_forward=args.push_forward, seed=args.seed,
+                       checkpoint_every=args.checkpoint_every)
     cfg = MeshNetConfig(latent=args.latent, mp_steps=args.mp_steps, mlp_layers=args.mlp_layers,
                         noise_std=0.02 if args.noise_std is None else args.noise_std)
     train(args.data[0], args.out, cfg, tcfg)

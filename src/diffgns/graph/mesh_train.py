@@ -8,6 +8,11 @@ optimiser state, step; the RNG is a function of (seed, step), :func:`step_rng`).
 One sample is one (trajectory, frame) pair: input velocity ``v_t`` with Gaussian noise
 (``noise_std``, m/s) on fluid nodes, target ``[v_{t+1} - v_noisy, p_{t+1}]`` normalised;
 the loss is the mean squared error over fluid and outflow nodes.
+
+With ``TrainConfig.push_forward = K > 0`` each sample first rolls the model forward
+``k ~ U{0..K}`` frames from the data without gradient (the push-forward trick of
+Brandstetter et al. 2022): the network then learns to correct the input distribution its
+own rollouts produce, the main cure for drift in long rollouts besides input noise.
 """
 from __future__ import annotations
 
@@ -116,7 +121,16 @@ def load_model(path: str | Path):
     return model, params, info
 
 
-def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key):
+def _pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
+    """``v`` (N, 2) advanced ``n_push`` (traced int) model frames with stopped gradients;
+    non-predicted nodes keep their values in ``v`` (steady boundary conditions)."""
+    frozen = jax.lax.stop_gradient(params)
+    body = lambda _, u: model.step(frozen, graph, u, v)[0]
+    return jax.lax.stop_gradient(jax.lax.fori_loop(0, n_push, body, v))
+
+
+def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key, n_push=0):
+    v = _pushed(model, params, graph, v, n_push)
     noise = model.config.noise_std * jax.random.normal(key, v.shape, v.dtype)
     v_in = v + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     target = jnp.concatenate([v_next - v_in, p_next[:, None]], axis=-1)
@@ -144,27 +158,31 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
     if ckpt.exists():
         params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
 
-    def batch_loss(params, g, v, vn, pn, key):
+    def batch_loss(params, g, v, vn, pn, key, push):
         keys = jax.random.split(key, v.shape[0])
         f = lambda *a: _loss(model, params, *a)
-        return jax.vmap(f)(g, v, vn, pn, keys).mean()
+        return jax.vmap(f)(g, v, vn, pn, keys, push).mean()
 
     @jax.jit
-    def update(params, opt_state, g, v, vn, pn, key):
-        loss, grads = jax.value_and_grad(batch_loss)(params, g, v, vn, pn, key)
+    def update(params, opt_state, g, v, vn, pn, key, push):
+        loss, grads = jax.value_and_grad(batch_loss)(params, g, v, vn, pn, key, push)
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
     info = dict(train=dataclasses.asdict(tcfg), data=str(train_path),
                 n_trajectories=len(trajs), frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
-    B, F = tcfg.batch_size, vel.shape[1]
+    B, F, K = tcfg.batch_size, vel.shape[1], tcfg.push_forward
+    if not 0 <= K < F - 1:
+        raise ValueError(f"push_forward must be in [0, {F - 2}] for {F}-frame trajectories, "
+                         f"got {K}")
 
     def one_step(params, opt_state, step):
         rng, key = step_rng(tcfg.seed, step)
-        ti, fi = rng.integers(0, len(trajs), B), rng.integers(0, F - 1, B)
+        ti, k = rng.integers(0, len(trajs), B), rng.integers(0, K + 1, B)
+        fi = rng.integers(0, F - 1 - k)
         g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
-        params, opt_state, loss = update(params, opt_state, g, vel[ti, fi], vel[ti, fi + 1],
-                                         pres[ti, fi + 1], key)
+        params, opt_state, loss = update(params, opt_state, g, vel[ti, fi], vel[ti, fi + k + 1],
+                                         pres[ti, fi + k + 1], key, jnp.asarray(k, jnp.int32))
         return params, opt_state, (loss,)
 
     params, opt_state, step = fit_loop(one_step, params, opt_state, step, tcfg, out, info,

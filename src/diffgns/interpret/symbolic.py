@@ -17,7 +17,15 @@ error and length (NSGA-II). We then
    or ``exp(2.5 d)`` are rejected: a length scale inside ``exp`` must be a free constant
    (``exp(d / c)``), not a variable weight. (Were the weights wildcards too, every pyoperon
    expression would pass and the check would say nothing.)
-4. **select** the expression that maximises the fractional drop in error per unit of added
+4. **snap** exponents: in every front expression, a ``pow`` whose exponent is a fitted
+   constant within ``snap_tol`` (0.1) of a multiple of 1/2 gets that multiple, frozen, and
+   the remaining constants are refitted by least squares (``d ** -1.977`` becomes
+   ``d ** -2``). A fitted exponent is never exactly rational, so without this step no
+   power law can pass the dimensional check; the snapped copy enters the pool beside the
+   original, at the same complexity, and is judged like any other expression.
+5. keep the union of the Pareto front of all candidates and that of the consistent ones
+   (a consistent expression dominated only by inconsistent ones stays visible);
+6. **select** the expression that maximises the fractional drop in error per unit of added
    complexity, ``-dlog(MAE)/dc`` between consecutive front members, among the dimensionally
    consistent ones when there are any.
 
@@ -51,11 +59,12 @@ class Candidate:
     dim_note: str
     score: float = 0.0
     selected: bool = False
+    snapped: bool = False
 
     def row(self) -> dict:
         return dict(expression=str(self.expr.evalf(5)), complexity=self.complexity,
                     mae=self.mae, score=self.score, consistent=self.consistent,
-                    dimensions=self.dim_note, selected=self.selected)
+                    dimensions=self.dim_note, selected=self.selected, snapped=self.snapped)
 
 
 def complexity(tree) -> int:
@@ -117,6 +126,37 @@ def tree_units(tree, names_by_hash: dict, units: dict[str, str], target: str | N
     return _units.verdict(result[0] if isinstance(result, tuple) else result, target)
 
 
+def snap_powers(tree, evaluate, y: np.ndarray, tol: float = 0.1):
+    """Copy of a pyoperon ``tree`` with constant ``pow`` exponents within ``tol`` of a
+    multiple of 1/2 set to it (and frozen), other constants refitted by least squares on
+    ``evaluate(tree) -> prediction (n,)`` against ``y`` (n,). None if nothing was snapped."""
+    import pyoperon
+    from scipy.optimize import least_squares
+
+    nodes, changed = tree.Nodes, False
+    for i, node in enumerate(nodes):
+        if str(node.Type).split(".")[-1] != "Pow" or node.Arity != 2:
+            continue
+        e = nodes[i - 2 - nodes[i - 1].Length]  # postfix: base at i-1, exponent before it
+        p = float(e.Value)
+        q = round(2 * p) / 2
+        if str(e.Type).split(".")[-1] == "Constant" and 0 < abs(p - q) <= tol:
+            e.Value, e.Optimize, changed = q, False, True
+    if not changed:
+        return None
+    out = pyoperon.Tree(nodes).UpdateNodes()
+    c0 = np.asarray(out.GetCoefficients(), np.float64)
+    if c0.size:
+        def residual(c):
+            out.SetCoefficients(c)
+            r = evaluate(out) - y
+            return np.where(np.isfinite(r), r, 1e6)
+
+        # node values are float32: finite-difference steps must be far above its epsilon
+        out.SetCoefficients(least_squares(residual, c0, diff_step=1e-3, max_nfev=400).x)
+    return out
+
+
 def to_sympy(text: str, names: list[str]) -> sympy.Expr:
     """pyoperon's infix string -> sympy expression over symbols ``names``."""
     local = {n: sympy.Symbol(n, real=True) for n in names}
@@ -127,11 +167,20 @@ def to_sympy(text: str, names: list[str]) -> sympy.Expr:
 def pareto(cands: list[Candidate]) -> list[Candidate]:
     """Non-dominated candidates by (complexity, MAE), sorted by complexity."""
     front, best = [], np.inf
+    cands = [c for c in cands if np.isfinite(c.mae)]
     for c in sorted(cands, key=lambda c: (c.complexity, c.mae)):
         if c.mae < best * (1 - 1e-9):
             front.append(c)
             best = c.mae
     return front
+
+
+def merge_fronts(cands: list[Candidate]) -> list[Candidate]:
+    """Union of the Pareto front of all candidates and that of the consistent ones, sorted
+    by (complexity, MAE)."""
+    both = pareto(cands) + pareto([c for c in cands if c.consistent])
+    unique = {id(c): c for c in both}
+    return sorted(unique.values(), key=lambda c: (c.complexity, c.mae))
 
 
 def select(front: list[Candidate], prefer_consistent: bool = True) -> Candidate:
@@ -158,11 +207,13 @@ def select(front: list[Candidate], prefer_consistent: bool = True) -> Candidate:
 def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str],
             target_unit: str | None, seed: int = 0, n_threads: int = 1,
             generations: int = 300, population: int = 1000, max_length: int = 30,
-            max_seconds: int = 300) -> tuple[list[Candidate], Candidate, dict]:
+            max_seconds: int = 300, snap_tol: float = 0.1
+            ) -> tuple[list[Candidate], Candidate, dict]:
     """Run pyoperon on (X (n, p), y (n,)); returns (front, selected, run info).
 
     ``names`` label the columns of X, ``units`` give each name's unit (:mod:`.units` syntax)
-    and ``target_unit`` the unit y must have (None: y's unit is arbitrary).
+    and ``target_unit`` the unit y must have (None: y's unit is arbitrary). ``snap_tol``:
+    exponent snapping tolerance (0 disables it).
     """
     from pyoperon.sklearn import SymbolicRegressor
 
@@ -179,18 +230,24 @@ def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str
     t0 = time.perf_counter()
     reg.fit(X, y)
     seconds = time.perf_counter() - t0
+    hashes = {k: names[i] for i, k in enumerate(reg.variables_)}
+    evaluate = lambda tree: reg.evaluate_model(tree, X)  # noqa: E731
     cands = []
     for sol in reg.pareto_front_:
-        text = reg.get_model_string(sol["tree"], 6, names)
-        pred = reg.evaluate_model(sol["tree"], X)
-        if not np.all(np.isfinite(pred)):
-            continue
-        expr = to_sympy(text, names)
-        hashes = {k: names[i] for i, k in enumerate(reg.variables_)}
-        ok, note = tree_units(sol["tree"], hashes, units, target_unit)
-        cands.append(Candidate(text, expr, complexity(sol["tree"]),
-                               float(np.mean(np.abs(pred - y))), ok, note))
-    front = pareto(cands)
+        trees = [(sol["tree"], False)]
+        if snap_tol > 0:
+            snapped = snap_powers(sol["tree"], evaluate, y, snap_tol)
+            trees += [(snapped, True)] if snapped is not None else []
+        for tree, was_snapped in trees:
+            pred = evaluate(tree)
+            if not np.all(np.isfinite(pred)):
+                continue
+            text = reg.get_model_string(tree, 6, names)
+            ok, note = tree_units(tree, hashes, units, target_unit)
+            cands.append(Candidate(text, to_sympy(text, names), complexity(tree),
+                                   float(np.mean(np.abs(pred - y))), ok, note,
+                                   snapped=was_snapped))
+    front = merge_fronts(cands)
     best = select(front)
     return front, best, dict(seconds=seconds, samples=len(y), seed=seed, n_threads=n_threads,
                              generations=generations, population=population)
