@@ -120,23 +120,17 @@ def _attr_value(value):
     return arr if arr.dtype.kind in "biuf" else json.dumps(value, default=str)
 
 
-class DatasetWriter:
-    """Append trajectories to an HDF5 file; see the module docstring for the layout.
+class H5TrajectoryFile:
+    """Append-mode HDF5 file of trajectory groups, shared by the dataset writers.
 
-    The file is opened in append mode, so reopening an existing file keeps its trajectories and
-    :meth:`append` continues the key numbering. Every trajectory is written under a temporary
-    name, moved to its final key and flushed, so an interrupted run leaves only complete groups
-    (leftover temporary groups are removed on the next open).
-
-    Args:
-        path: the ``.h5`` file; parent folders are created.
-        metadata_extra: extra JSON-serialisable entries for the metadata file. They are also
-            stored in the file, so a resumed writer keeps them when given ``None``.
+    Reopening an existing file keeps its trajectories. Every group is written under a
+    temporary name, moved to its final key and flushed, so an interrupted run leaves only
+    complete groups (leftover temporary groups are removed on the next open).
+    ``metadata_extra`` (JSON-serialisable) is stored in the file, so a resumed writer keeps it
+    when given ``None``.
     """
 
     def __init__(self, path: str | Path, metadata_extra: dict | None = None):
-        clash = sorted(_RESERVED_KEYS.intersection(metadata_extra or {}))
-        _require(not clash, f"metadata_extra may not override computed keys {clash}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = h5py.File(self.path, "a")
@@ -159,6 +153,51 @@ class DatasetWriter:
         """Whether a complete trajectory is stored under ``key``."""
         return not key.startswith(_TMP_PREFIX) and key in self._file
 
+    def _store(self, key: str, datasets: dict, attrs: dict) -> None:
+        """Write one group atomically: ``datasets`` name -> array (stored with its dtype),
+        ``attrs`` as group attributes (:func:`_attr_value`); replaces ``key``; flushes."""
+        _require(bool(key) and not key.startswith(_TMP_PREFIX) and "/" not in key,
+                 f"invalid trajectory key {key!r}")
+        tmp = _TMP_PREFIX + key
+        if tmp in self._file:
+            del self._file[tmp]
+        grp = self._file.create_group(tmp)
+        for name, data in datasets.items():
+            grp.create_dataset(name, data=data)
+        for name, value in attrs.items():
+            grp.attrs[name] = _attr_value(value)
+        if key in self._file:
+            del self._file[key]
+        self._file.move(tmp, key)
+        self._file.flush()
+
+    def close(self) -> None:
+        """Flush and close the file (idempotent)."""
+        if self._file.id.valid:
+            self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class DatasetWriter(H5TrajectoryFile):
+    """Append trajectories to an HDF5 file; see the module docstring for the layout and
+    :class:`H5TrajectoryFile` for resume and atomic writes; :meth:`append` continues the key
+    numbering.
+
+    Args:
+        path: the ``.h5`` file; parent folders are created.
+        metadata_extra: extra JSON-serialisable entries for the metadata file.
+    """
+
+    def __init__(self, path: str | Path, metadata_extra: dict | None = None):
+        clash = sorted(_RESERVED_KEYS.intersection(metadata_extra or {}))
+        _require(not clash, f"metadata_extra may not override computed keys {clash}")
+        super().__init__(path, metadata_extra)
+
     def _next_index(self) -> int:
         indices = [int(k) for k in self.keys() if k.isdigit()]
         return max(indices) + 1 if indices else 0
@@ -175,25 +214,14 @@ class DatasetWriter:
         ``attrs`` are stored as group attributes (numbers, strings and numeric arrays as is,
         anything else as JSON text). The file is flushed before returning.
         """
-        _require(bool(key) and not key.startswith(_TMP_PREFIX) and "/" not in key,
-                 f"invalid trajectory key {key!r}")
         _check_trajectory(traj)
-        tmp = _TMP_PREFIX + key
-        if tmp in self._file:
-            del self._file[tmp]
-        grp = self._file.create_group(tmp)
-        grp.create_dataset("position", data=np.asarray(traj.positions, dtype=np.float32))
-        grp.create_dataset("velocity", data=np.asarray(traj.velocities, dtype=np.float32))
-        grp.create_dataset("particle_type", data=np.asarray(traj.particle_type, dtype=np.int32))
-        grp.create_dataset("material_property", data=np.asarray(traj.material, dtype=np.float32))
-        grp.attrs["frame_dt"] = float(traj.frame_dt)
-        grp.attrs["bounds"] = np.asarray(traj.bounds, dtype=float).reshape(2, 2)
-        for name, value in (attrs or {}).items():
-            grp.attrs[name] = _attr_value(value)
-        if key in self._file:
-            del self._file[key]
-        self._file.move(tmp, key)
-        self._file.flush()
+        datasets = dict(position=np.asarray(traj.positions, dtype=np.float32),
+                        velocity=np.asarray(traj.velocities, dtype=np.float32),
+                        particle_type=np.asarray(traj.particle_type, dtype=np.int32),
+                        material_property=np.asarray(traj.material, dtype=np.float32))
+        self._store(key, datasets, dict(
+            frame_dt=float(traj.frame_dt),
+            bounds=np.asarray(traj.bounds, dtype=float).reshape(2, 2), **(attrs or {})))
 
     def finalize(self, connectivity_radius: float) -> dict:
         """Compute the statistics and write ``<stem>.metadata.json`` (:func:`metadata_path`).
@@ -221,18 +249,6 @@ class DatasetWriter:
         }
         metadata_path(self.path).write_text(json.dumps(meta, indent=2, default=str))
         return meta
-
-    def close(self) -> None:
-        """Flush and close the file (idempotent)."""
-        if self._file.id.valid:
-            self._file.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 def read_metadata(path: str | Path) -> dict:
     """Read the metadata of a dataset.

@@ -31,41 +31,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..dataset import metadata_path
+from ..dataset import _TMP_PREFIX, H5TrajectoryFile, metadata_path
 from .mesh import FLUID, INFLOW, NODE_TYPE_NAMES, OUTFLOW, WALL
 
-_TMP = "_incomplete_"
 _ARRAYS = ("mesh_pos", "cells", "node_type", "on_cylinder", "velocity", "pressure", "time",
            "cd", "cl")
 
 
-def _attr(value):
-    if isinstance(value, (str, bytes, int, float, bool, np.number)):
-        return value
-    arr = np.asarray(value)
-    return arr if arr.dtype.kind in "biuf" else json.dumps(value, default=str)
-
-
-class CylinderDatasetWriter:
-    """Append-mode writer of cylinder-flow trajectories; see the module docstring."""
-
-    def __init__(self, path: str | Path, metadata_extra: dict | None = None):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = h5py.File(self.path, "a")
-        for k in [k for k in self._f if k.startswith(_TMP)]:
-            del self._f[k]
-        if metadata_extra is None:
-            metadata_extra = json.loads(self._f.attrs.get("metadata_extra", "{}"))
-        self.metadata_extra = dict(metadata_extra)
-        self._f.attrs["metadata_extra"] = json.dumps(self.metadata_extra, default=str)
-        self._f.flush()
-
-    def keys(self) -> list[str]:
-        return sorted(k for k in self._f if not k.startswith(_TMP))
-
-    def has(self, key: str) -> bool:
-        return not key.startswith(_TMP) and key in self._f
+class CylinderDatasetWriter(H5TrajectoryFile):
+    """Append-mode writer of cylinder-flow trajectories; see the module docstring (resume and
+    atomic writes come from :class:`diffgns.dataset.H5TrajectoryFile`)."""
 
     def write(self, key: str, arrays: dict, attrs: dict) -> None:
         """Store one trajectory; ``arrays`` holds the datasets of the module docstring."""
@@ -80,21 +55,11 @@ class CylinderDatasetWriter:
             if np.shape(arrays[name]) != shape:
                 raise ValueError(f"cylinder trajectory {key!r}: '{name}' has shape "
                                  f"{np.shape(arrays[name])}, expected {shape}")
-        tmp = _TMP + key
-        if tmp in self._f:
-            del self._f[tmp]
-        g = self._f.create_group(tmp)
         dtypes = dict(mesh_pos=np.float64, cells=np.int32, node_type=np.int32, on_cylinder=bool,
                       velocity=np.float32, pressure=np.float32, time=np.float64,
                       cd=np.float64, cl=np.float64)
-        for name, dt in dtypes.items():
-            g.create_dataset(name, data=np.asarray(arrays[name], dtype=dt))
-        for name, value in attrs.items():
-            g.attrs[name] = _attr(value)
-        if key in self._f:
-            del self._f[key]
-        self._f.move(tmp, key)
-        self._f.flush()
+        self._store(key, {name: np.asarray(arrays[name], dtype=dt)
+                          for name, dt in dtypes.items()}, attrs)
 
     def finalize(self) -> dict:
         """Write ``<stem>.metadata.json``: frame dt, sizes, per-trajectory parameters and
@@ -117,7 +82,7 @@ class CylinderDatasetWriter:
 
         per, dts = [], []
         for k in keys:
-            g = self._f[k]
+            g = self._file[k]
             u, p, nt = g["velocity"][()], g["pressure"][()], g["node_type"][()]
             add("u", u)
             add("p", p[..., None])
@@ -144,17 +109,6 @@ class CylinderDatasetWriter:
         metadata_path(self.path).write_text(json.dumps(meta, indent=2, default=str) + "\n")
         return meta
 
-    def close(self) -> None:
-        if self._f.id.valid:
-            self._f.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
 def _json_attr(v):
     if isinstance(v, bytes):
         v = v.decode()
@@ -174,7 +128,7 @@ def iter_cylinder_dataset(path: str | Path) -> Iterator[tuple[str, dict, dict]]:
             node types outside FLUID/WALL/INFLOW/OUTFLOW.
     """
     with h5py.File(path, "r") as f:
-        for key in sorted(k for k in f if not k.startswith(_TMP)):
+        for key in sorted(k for k in f if not k.startswith(_TMP_PREFIX)):
             g = f[key]
             missing = [a for a in _ARRAYS if a not in g]
             if missing:
