@@ -66,11 +66,14 @@ def test_training_recipe_runs_its_stages_in_turn(tmp_path, monkeypatch):
     path = nbody_data.generate(tmp_path / "s.h5", pipeline.SYSTEMS["spring"], 1, 20, seed=0,
                                progress=False)
     samples = nbody_data.edge_samples(*nbody_data.load(path))
-    net, _, params, = pipeline.train_network(samples, tmp_path / "run", "tiny", progress=False)
+    net, _, _ = pipeline.train_network(samples, tmp_path / "run", "tiny", progress=False)
     assert net.cfg == tiny
     info = message_net.load(tmp_path / "run" / "model")[3]
-    # the second stage resumed the first: 30 steps in all, its own schedule recorded
+    # the second stage resumed the first: 30 steps in all, its own schedule recorded, and
+    # the log holds the end of both stages (a second stage started afresh would log only 30)
     assert info["steps"] == 30 and info["train"]["lr_decay_steps"] == 30
+    log = np.loadtxt(tmp_path / "run" / "train_log.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert log[:, 0].tolist() == [10, 30]
     with pytest.raises(ValueError, match="variant"):
         pipeline.run("spring", tmp_path, tmp_path, variant="l2")
 

@@ -212,8 +212,8 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
     te_all = messages.edge_messages(net, norm, params, test_samples, 10000, seed + 1)
     te = messages.edge_messages(net, norm, params, test_samples, None, seed + 2, True)
     res = dict(law=law, model=model, msg_dim=net.cfg.msg_dim, system=dict(cfg.__dict__),
-               premise_all_edges=messages.summarise(
-        tr, te_all), premise_regression_edges=messages.summarise(tr, te))
+               premise_all_edges=messages.summarise(tr, te_all),
+               premise_regression_edges=messages.summarise(tr, te))
     off = np.linalg.norm(te_all["force"], axis=-1) == 0
     top = res["premise_all_edges"]["top_components"][:2]
     res["message_off_interaction"] = dict(
