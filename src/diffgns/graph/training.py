@@ -70,8 +70,9 @@ def pushed_target(window, hist, unroll: int):
     ending at data frame ``C + unroll``. Either way its offset from the data is treated as
     input noise (:func:`~diffgns.graph.features.target_acceleration`): the target corrects
     the *velocity* only, and the last frame's offset is carried to the target position.
-    Asking the model to remove the whole position error in one step instead makes the target ~(position error)/frame^2, dozens of acceleration standard deviations,
-    which swamps the loss (measured: normalised loss 1.46 against 0.0125 without pushing).
+    Asking the model to remove the whole position error in one step instead makes the target
+    ~(position error)/frame^2, dozens of acceleration standard deviations, which swamps
+    the loss (measured: normalised loss 1.46 against 0.0125 without pushing).
     """
     C = hist.shape[1] - 1
     truth = jnp.swapaxes(window[unroll: C + 1 + unroll], 0, 1)
