@@ -69,6 +69,8 @@ def test_handoff_moves_particles_with_their_node_and_sets_F():
     st = sim.init_state()
     n = st.n_particles
     cluster = jnp.asarray(np.arange(n) % 3)
+    counts = jnp.bincount(cluster)
+    x_node = node_means(st.x, cluster, counts)
     disp = jnp.array([[0.01, 0.0], [0.0, 0.02], [0.005, 0.005]])  # stays inside
     vel = disp / 0.005
     gv = jnp.broadcast_to(jnp.array([[0.0, 1.0], [0.0, 0.0]]), (3, 2, 2))
@@ -76,16 +78,50 @@ def test_handoff_moves_particles_with_their_node_and_sets_F():
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
     st = st.replace(F=st.F * 1.01)
     for mode in ("reset", "carry", "reconstruct"):
-        new = particles_from_nodes(st, cluster, disp, vel, gv, gu, mode, lo, hi)
+        new = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, mode, lo, hi,
+                                   particle_map="rigid")
         np.testing.assert_allclose(new.x - st.x, disp[cluster].T, atol=1e-7)
         np.testing.assert_allclose(new.v, vel[cluster].T, rtol=1e-6)
         np.testing.assert_allclose(new.C[0, 1], 1.0)
         detF = new.F[0, 0] * new.F[1, 1] - new.F[0, 1] * new.F[1, 0]
         want = {"reset": 1.0, "carry": 1.01**2, "reconstruct": 1.01**2}[mode]
         np.testing.assert_allclose(detF, want, rtol=1e-5)  # reconstruct is isochoric
-    np.testing.assert_allclose(node_means(st.x, cluster, jnp.bincount(cluster)),
-                               [st.x[:, np.arange(n) % 3 == k].mean(1) for k in range(3)],
-                               rtol=1e-6)
+    np.testing.assert_allclose(x_node, [st.x[:, np.arange(n) % 3 == k].mean(1)
+                                        for k in range(3)], rtol=1e-6)
+    with pytest.raises(ValueError, match="particle_map"):
+        particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi, "warp")
+
+
+def test_affine_particle_map_follows_a_linear_node_field():
+    """A node field u(x) = u0 + G (x - x0) moves every particle exactly as the field does
+    (clusters stretch and shear), keeps each cluster's mean on its node, and gives each
+    particle the field's velocity at its new position; the rigid map keeps cluster shapes."""
+    sim = MPM(small_scene())
+    st = sim.init_state()
+    x = np.asarray(st.x)
+    cluster = jnp.asarray((x[0] > np.median(x[0])).astype(np.int32)
+                          + 2 * (x[1] > np.median(x[1])))
+    counts = jnp.bincount(cluster)
+    x_node = node_means(st.x, cluster, counts)
+    G = jnp.array([[0.02, 0.05], [-0.01, 0.03]])  # displacement gradient over the frame
+    u0 = jnp.array([0.004, -0.002])
+    x0 = jnp.array([0.05, 0.02])
+    disp = u0 + (x_node - x0) @ G.T
+    dt = 0.005
+    vel, gv, gu = disp / dt, jnp.broadcast_to(G / dt, (4, 2, 2)), jnp.broadcast_to(G, (4, 2, 2))
+    lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
+    new = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
+    want = st.x + (u0 + (st.x.T - x0) @ G.T).T
+    np.testing.assert_allclose(new.x, want, atol=1e-7)
+    np.testing.assert_allclose(node_means(new.x, cluster, counts), x_node + disp, atol=1e-7)
+    # velocity of the field at the particle's new position (nodes moved by disp)
+    v_want = (vel[cluster] + (new.x.T - (x_node + disp)[cluster]) @ (G / dt).T).T
+    np.testing.assert_allclose(new.v, v_want, rtol=1e-5, atol=1e-6)
+    rigid = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi,
+                                 particle_map="rigid")
+    spread = lambda y: np.asarray(y - node_means(y, cluster, counts)[cluster].T)  # noqa: E731
+    np.testing.assert_allclose(spread(rigid.x), spread(st.x), atol=1e-7)
+    assert np.abs(spread(new.x) - spread(st.x)).max() > 1e-4  # the affine map deforms
 
 
 def test_mpm_only_schedule_is_the_mpm(model):
@@ -174,3 +210,14 @@ def test_grad_through_hybrid_matches_finite_differences(model, x64):
     fd = (loss(30.0 + h)[0] - loss(30.0 - h)[0]) / (2 * h)
     assert np.isfinite(g) and abs(g) > 1e-6
     np.testing.assert_allclose(g, fd, rtol=0.02)
+
+
+def test_node_factor_keeps_the_trained_node_spacing():
+    from diffgns.hybrid_compare import node_factor
+
+    info = {"factor": 16, "source": {"cells_across": 16}}
+    assert node_factor(info, 16) == 16
+    assert node_factor(info, 32) == 64  # 8 x 8 particles of the finer MPM per node
+    assert node_factor({"factor": 4, "source": {"cells_across": 8}}, 12) == 9
+    with pytest.raises(ValueError, match="particles per node"):
+        node_factor({"factor": 4, "source": {"cells_across": 8}}, 10)

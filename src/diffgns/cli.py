@@ -205,7 +205,7 @@ def _hybrid(args) -> int:
 
     sched = Schedule(warmup=args.warmup, gns_frames=args.gns_frames,
                      mpm_frames=args.mpm_frames, handoff=args.handoff,
-                     adaptive_tol=args.adaptive_tol)
+                     adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
     out = compare(load_model(args.model), args.aspect_ratio, args.friction_angle, sched,
                   args.frames, args.reference_cells, args.cells_across)
     print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s}")
@@ -330,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--gns-frames", type=int, default=5, help="M: GNS frames per segment")
     h.add_argument("--mpm-frames", type=int, default=2, help="K: MPM frames per segment")
     h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"])
+    h.add_argument("--particle-map", default="affine", choices=["affine", "rigid"],
+                   help="how MPM particles follow their GNS node in GNS frames")
     h.add_argument("--adaptive-tol", type=float, default=None,
                    help="energy-balance tolerance (J/kg) for adaptive switching")
     h.add_argument("--cells-across", type=int, default=None,

@@ -35,6 +35,7 @@ from .graph.gns import GNS
 from .graph.neighbors import did_overflow, edges
 from .hybrid_handoff import (
     HANDOFFS,
+    PARTICLE_MAPS,
     lsq_gradient,
     node_means,
     particles_from_nodes,
@@ -57,6 +58,8 @@ class Schedule:
             "reconstruct" (F updated with the GNS displacement gradient).
         adaptive_tol: J/kg of accumulated energy-balance deviation that ends a GNS segment
             early (None: fixed schedule).
+        particle_map: how particles follow their node in GNS frames: "affine" (with the
+            node field's displacement gradient) or "rigid" (the node's displacement).
         min_gns_frames: shortest GNS segment when adaptive.
     """
 
@@ -66,6 +69,7 @@ class Schedule:
     handoff: str = "carry"
     adaptive_tol: float | None = None
     min_gns_frames: int = 1
+    particle_map: str = "affine"
 
     def __post_init__(self):
         bad = []
@@ -81,18 +85,21 @@ class Schedule:
             bad.append("adaptive_tol > 0")
         if self.min_gns_frames < 1:
             bad.append("min_gns_frames >= 1")
+        if self.particle_map not in PARTICLE_MAPS:
+            bad.append(f"particle_map in {PARTICLE_MAPS}")
         if bad:
             raise ValueError(f"invalid Schedule ({', '.join(bad)} required): {self}")
 
     @property
     def label(self) -> str:
+        rigid = " rigid" if self.particle_map == "rigid" else ""
         if self.gns_frames == 0:
             return "MPM"
         if self.mpm_frames == 0:
-            return "GNS"
+            return "GNS" + rigid
         tag = f"adaptive tol={self.adaptive_tol:g} M<={self.gns_frames}" \
             if self.adaptive_tol else f"M={self.gns_frames}"
-        return f"hybrid K={self.mpm_frames} {tag} ({self.handoff})"
+        return f"hybrid K={self.mpm_frames} {tag} ({self.handoff}{rigid})"
 
 
 @dataclasses.dataclass
@@ -181,10 +188,10 @@ class Hybrid:
         disp = x_next - x
         vel = disp / self.frame_dt
         grad_v = lsq_gradient(vel, x_next, s, r, m)
-        grad_u = lsq_gradient(disp, x, s, r, m) if self.schedule.handoff == "reconstruct" \
-            else grad_v
-        state = particles_from_nodes(state, self.cluster, disp, vel, grad_v, grad_u,
-                                     self.schedule.handoff, self.lo, self.hi)
+        grad_u = lsq_gradient(disp, x, s, r, m)
+        state = particles_from_nodes(state, self.cluster, x, disp, vel, grad_v, grad_u,
+                                     self.schedule.handoff, self.lo, self.hi,
+                                     self.schedule.particle_map)
         if self.schedule.handoff == "reconstruct":  # plastic return mapping of the new F
             state = state.replace(F=self.mpm.stress(params, state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the

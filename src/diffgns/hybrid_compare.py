@@ -83,13 +83,24 @@ def run_mpm(scene, n_frames: int, stride: int, repeats: int = 3):
     return np.asarray(out[0])[::stride], t
 
 
+def node_factor(info: dict, cells_across: int) -> int:
+    """MPM particles per GNS node when a GNS model runs on the MPM at ``cells_across`` cells:
+    its training factor scaled so that the nodes keep the spacing it was trained on."""
+    f = info.get("factor", 1) * (cells_across / model_cells(info)) ** 2
+    if abs(f - round(f)) > 1e-9 or round(f) < 1:
+        raise ValueError(f"the GNS (factor {info.get('factor', 1)} at {model_cells(info)} cells)"
+                         f" cannot run on {cells_across} cells: {f:g} particles per node")
+    return int(round(f))
+
+
 def run_hybrid(scene, gns, gns_params, info: dict, schedule: Schedule, n_frames: int,
-               repeats: int = 3):
-    """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames."""
+               repeats: int = 3, cells_across: int | None = None):
+    """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames;
+    ``cells_across``: the resolution of ``scene`` when it is not the model's own."""
     sim = MPM(scene)
     p, s = sim.params(), sim.init_state()
-    hyb = Hybrid(sim, gns, gns_params, info.get("frame_stride", 1), info.get("factor", 1),
-                 schedule)
+    factor = node_factor(info, cells_across or model_cells(info))
+    hyb = Hybrid(sim, gns, gns_params, info.get("frame_stride", 1), factor, schedule)
     t0 = time.perf_counter()
     _, nbrs = jax.block_until_ready(hyb.run(p, s, n_frames))  # allocate a list that fits
     first = time.perf_counter() - t0
@@ -117,11 +128,12 @@ def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedul
                          n_frames, stride, repeats=1)
     scene = column_scene(aspect_ratio, friction_angle, cells_across)
     x_mpm, t_mpm = run_mpm(scene, n_frames, stride, repeats)
-    gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0)
+    gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0,
+                        particle_map=schedule.particle_map)
     runs = {f"MPM {reference_cells} cells (reference)": (ref, t_ref),
             f"MPM {cells_across} cells": (x_mpm, t_mpm)}
     for sched in (gns_only, schedule):
-        res, t = run_hybrid(scene, gns, gp, info, sched, n_frames, repeats)
+        res, t = run_hybrid(scene, gns, gp, info, sched, n_frames, repeats, cells_across)
         runs[sched.label] = (np.asarray(res.positions), t)
     rows = []
     for label, (x, t) in runs.items():

@@ -3,7 +3,12 @@
 GNS nodes are cluster means of MPM particles (:func:`diffgns.graph.data.coarse_grain_map`).
 
 * MPM -> GNS: node position = mean position of its particles (what the GNS was trained on).
-* GNS -> MPM: every particle moves with its node (positions and velocities), the APIC matrix
+* GNS -> MPM: every particle follows the affine field of its node: with ``r`` its offset
+  from the node before the frame, it moves by ``u_k + (grad u)_k r`` and takes the velocity
+  ``v_k + (grad v)_k r'`` (``r'`` the offset after the move), so a cluster stretches and
+  shears as the node field does and its mean stays the node ("affine", the default);
+  "rigid" moves every particle by its node's displacement and velocity (clusters keep their
+  shape; what published research code did). The APIC matrix
   C of a particle is the velocity gradient of the node field at its node, and the deformation
   gradient F is either reset to I (stress-free, what published research code did), carried
   unchanged from the last MPM frame, or updated with the isochoric part of the displacement
@@ -20,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 HANDOFFS = ("reset", "carry", "reconstruct")
+PARTICLE_MAPS = ("affine", "rigid")
 
 
 def node_means(x: jax.Array, cluster: jax.Array, counts: jax.Array) -> jax.Array:
@@ -55,26 +61,38 @@ def lsq_gradient(u: jax.Array, x: jax.Array, senders, receivers, mask) -> jax.Ar
     return jnp.where(ok[:, None, None], G, 0.0)
 
 
-def particles_from_nodes(state, cluster, disp, vel, grad_v, grad_u, handoff: str, lo, hi):
-    """MPM state after a GNS frame that moved node ``k`` by ``disp[k]``.
+def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,
+                         lo, hi, particle_map: str = "affine"):
+    """MPM state after a GNS frame that moved node ``k`` from ``x_node[k]`` by ``disp[k]``.
 
     Args:
         state: the :class:`~diffgns.mpm.state.MPMState` before the frame.
         cluster: (N,) node index of every particle.
+        x_node: (M, 2) node positions before the frame (the cluster means of ``state.x``), m.
         disp: (M, 2) node displacement over the frame, m. vel: (M, 2) node velocity, m/s.
         grad_v: (M, 2, 2) node velocity gradient, 1/s. grad_u: (M, 2, 2) displacement
-            gradient over the frame (used by "reconstruct").
+            gradient over the frame.
         handoff: one of :data:`HANDOFFS`. lo, hi: (2,) domain bounds, m.
+        particle_map: one of :data:`PARTICLE_MAPS`.
     """
-    x = jnp.clip(state.x + disp[cluster].T, lo[:, None], hi[:, None])
+    if particle_map not in PARTICLE_MAPS:
+        raise ValueError(f"particle_map must be one of {PARTICLE_MAPS}, got {particle_map!r}")
+    Gu = jnp.moveaxis(grad_u[cluster], 0, -1)  # (2, 2, N)
+    Gv = jnp.moveaxis(grad_v[cluster], 0, -1)
+    x = state.x + disp[cluster].T
     v = vel[cluster].T
-    C = jnp.moveaxis(grad_v[cluster], 0, -1)
+    if particle_map == "affine":
+        r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
+        x = x + jnp.einsum("abn,bn->an", Gu, r)
+        v = v + jnp.einsum("abn,bn->an", Gv, r + jnp.einsum("abn,bn->an", Gu, r))
+    x = jnp.clip(x, lo[:, None], hi[:, None])
+    C = Gv
     if handoff == "reset":
         F = jnp.broadcast_to(jnp.eye(2, dtype=state.F.dtype)[:, :, None], state.F.shape)
     elif handoff == "carry":
         F = state.F
     elif handoff == "reconstruct":
-        L = jnp.eye(2, dtype=state.F.dtype)[:, :, None] + jnp.moveaxis(grad_u[cluster], 0, -1)
+        L = jnp.eye(2, dtype=state.F.dtype)[:, :, None] + Gu
         # Isochoric part only: a 1% volumetric error of the coarse node field would load a
         # stiff granular skeleton with ~10x its lithostatic pressure.
         det = L[0, 0] * L[1, 1] - L[0, 1] * L[1, 0]

@@ -81,9 +81,11 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
 
 
 def _initial_model(path, gns: GNS):
-    """(GNS with the model's normaliser, its params) from ``path``; config must match."""
+    """(GNS with the model's normaliser, its params) from ``path``; the config must match
+    except for the training noise ``noise_std`` (a training setting: the model's normaliser,
+    which folded in its own noise, is kept)."""
     base, params, _ = load_model(path)
-    if base.config != gns.config:
+    if dataclasses.replace(base.config, noise_std=gns.config.noise_std) != gns.config:
         diff = {k: (getattr(base.config, k), v) for k, v in dataclasses.asdict(gns.config)
                 .items() if getattr(base.config, k) != v and k != "bounds"}
         raise ValueError(f"--init-from model {path} has a different configuration: "
