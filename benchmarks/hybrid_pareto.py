@@ -167,10 +167,10 @@ def check_target(table) -> dict:
     """Hybrid rows on each front with less than half the error of their model's GNS alone
     (same particle map): ``{reference: [{label, error_m, gns_error_m, ratio, seconds}]}``."""
     out = {}
+    gns = {(model_of(r["label"]), "rigid" in r["label"]): r for r in table
+           if r["family"] == "GNS"}
     for key, err, ref in (("pareto", "mean_position_error_m", "fine MPM reference"),
                           ("pareto_own", "own_mpm_position_error_m", "own-resolution MPM")):
-        gns = {(model_of(r["label"]), "rigid" in r["label"]): r for r in table
-               if r["family"] == "GNS"}
         hits = []
         for r in table:
             base = gns.get((model_of(r["label"]), "rigid" in r["label"]))

@@ -188,11 +188,12 @@ class Hybrid:
         disp = x_next - x
         vel = disp / self.frame_dt
         grad_v = lsq_gradient(vel, x_next, s, r, m)
-        grad_u = lsq_gradient(disp, x, s, r, m)
+        sched = self.schedule
+        needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
+        grad_u = lsq_gradient(disp, x, s, r, m) if needs_grad_u else jnp.zeros_like(grad_v)
         state = particles_from_nodes(state, self.cluster, x, disp, vel, grad_v, grad_u,
-                                     self.schedule.handoff, self.lo, self.hi,
-                                     self.schedule.particle_map)
-        if self.schedule.handoff == "reconstruct":  # plastic return mapping of the new F
+                                     sched.handoff, self.lo, self.hi, sched.particle_map)
+        if sched.handoff == "reconstruct":  # plastic return mapping of the new F
             state = state.replace(F=self.mpm.stress(params, state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the
         # rate the MPM showed in its last frame (J/kg, accumulated over the segment).
