@@ -50,7 +50,7 @@ def test_mesh_edges_both_directions_no_duplicates():
 
 def test_padding_masks_and_rejects_overflow():
     pos, cells, types = _grid_mesh()
-    g = pad_mesh(pos, cells, types, 32, 128)
+    g = pad_mesh(pos, cells, types, 32, 128, NU)
     n_edges = len(mesh_edges(cells)[0])
     assert int(g.edge_mask.sum()) == n_edges
     assert np.all(np.asarray(g.node_type)[len(pos):] == PAD)
@@ -59,15 +59,20 @@ def test_padding_masks_and_rejects_overflow():
         pad_mesh(pos, cells, types, 10, 128)
 
 
-def _model(latent=16, steps=2):
+NU = 1e-3  # kinematic viscosity of the test flows, m^2/s
+
+
+def _model(latent=16, steps=2, viscosity_feature=True):
     stats = MeshStats(Normalizer(jnp.zeros(2), jnp.ones(2)),
-                      Normalizer(jnp.zeros(3), jnp.full(3, 0.1)), 0.2)
-    return MeshNet(MeshNetConfig(latent=latent, mp_steps=steps), stats)
+                      Normalizer(jnp.zeros(3), jnp.full(3, 0.1)), 0.2,
+                      Normalizer(jnp.asarray(np.log(NU)), jnp.asarray(0.5)))
+    cfg = MeshNetConfig(latent=latent, mp_steps=steps, viscosity_feature=viscosity_feature)
+    return MeshNet(cfg, stats)
 
 
 def test_rollout_holds_boundary_nodes_and_jit_matches_eager():
     pos, cells, types = _grid_mesh()
-    g = pad_mesh(pos, cells, types, 32, 128)
+    g = pad_mesh(pos, cells, types, 32, 128, NU)
     model = _model()
     params = model.init(jax.random.PRNGKey(0), g)
     v0 = jnp.asarray(np.random.default_rng(0).normal(size=(32, 2)), jnp.float32)
@@ -84,7 +89,7 @@ def test_rollout_holds_boundary_nodes_and_jit_matches_eager():
 def test_padding_does_not_change_predictions():
     pos, cells, types = _grid_mesh()
     model = _model()
-    g1, g2 = pad_mesh(pos, cells, types, 32, 128), pad_mesh(pos, cells, types, 48, 200)
+    g1, g2 = pad_mesh(pos, cells, types, 32, 128, NU), pad_mesh(pos, cells, types, 48, 200, NU)
     params = model.init(jax.random.PRNGKey(1), g1)
     v = np.random.default_rng(1).normal(size=(len(pos), 2)).astype(np.float32)
     pad = lambda n: jnp.asarray(np.concatenate([v, np.zeros((n - len(pos), 2), np.float32)]))
@@ -117,7 +122,8 @@ def _synthetic_dataset(path, n_traj=2, frames=12):
                           pressure=np.sin(phase).astype(np.float32), time=t[:, 0],
                           cd=np.zeros(frames), cl=np.zeros(frames))
             w.write(f"{k:05d}", arrays, dict(frame_dt=0.01, reynolds=100.0, u_max=1.5,
-                                              radius=0.05, center=[0.2, 0.2]))
+                                              nu=NU * (1 + k), radius=0.05,
+                                              center=[0.2, 0.2]))
         w.finalize()
 
 
@@ -140,7 +146,7 @@ def test_training_on_a_dataset_learns_and_resumes_exactly(tmp_path):
     assert log["loss"][-1] < 0.5 * log["loss"][0]
     model, params, info = mesh_train.load_model(tmp_path / "a" / "model")
     assert info["kind"] == "meshgraphnet" and info["steps"] == 120
-    g = pad_mesh(*_grid_mesh(), *info["padding"])
+    g = pad_mesh(*_grid_mesh(), *info["padding"], viscosity=NU)
     v = jnp.zeros((info["padding"][0], 2))
     np.testing.assert_allclose(np.asarray(model.predict(params, g, v)[0]),
                                np.asarray(model.predict(p_full, g, v)[0]), rtol=1e-6)
@@ -162,7 +168,7 @@ def test_push_forward_unrolls_the_model_without_gradient(tmp_path):
     from diffgns.graph.training import TrainConfig
 
     pos, cells, types = _grid_mesh()
-    g = pad_mesh(pos, cells, types, 32, 128)
+    g = pad_mesh(pos, cells, types, 32, 128, NU)
     model = _model()
     params = model.init(jax.random.PRNGKey(0), g)
     v = jnp.asarray(np.random.default_rng(2).normal(size=(32, 2)), jnp.float32)
@@ -185,3 +191,68 @@ def test_push_forward_unrolls_the_model_without_gradient(tmp_path):
     with pytest.raises(ValueError, match="push_forward"):
         mesh_train.train(tmp_path / "d.h5", tmp_path / "b", cfg,
                          dataclasses.replace(tc, push_forward=11), progress=False)
+
+
+def test_viscosity_is_an_input_and_a_graph_without_it_is_rejected():
+    pos, cells, types = _grid_mesh()
+    model = _model()
+    g = pad_mesh(pos, cells, types, 32, 128, NU)
+    params = model.init(jax.random.PRNGKey(3), g)
+    v = jnp.asarray(np.random.default_rng(3).normal(size=(32, 2)), jnp.float32)
+    thicker = pad_mesh(pos, cells, types, 32, 128, 3 * NU)
+    a, b = model.predict(params, g, v)[0], model.predict(params, thicker, v)[0]
+    assert np.max(np.abs(np.asarray(a) - np.asarray(b))) > 1e-4
+    model.check_graph(g)
+    with pytest.raises(ValueError, match="viscosity"):
+        model.check_graph(pad_mesh(pos, cells, types, 32, 128))
+    with pytest.raises(ValueError, match="positive kinematic viscosity"):
+        pad_mesh(pos, cells, types, 32, 128, -1e-3)
+    with pytest.raises(ValueError, match="MeshStats.viscosity"):
+        MeshNet(MeshNetConfig(latent=8, mp_steps=1), dataclasses.replace(model.stats,
+                                                                         viscosity=None))
+
+
+def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_path):
+    """A model trained without the viscosity input, grown to read it: the new input's
+    weights start at zero, so the grown network predicts exactly what the old one did; a
+    configuration that differs otherwise is rejected; old model.json files load."""
+    import json
+
+    from diffgns.graph import mesh_train
+    from diffgns.graph.training import TrainConfig
+
+    _synthetic_dataset(tmp_path / "d.h5")
+    old_cfg = MeshNetConfig(latent=16, mp_steps=2, noise_std=0.002, viscosity_feature=False)
+    tc = TrainConfig(steps=20, batch_size=2, lr=3e-3, lr_final=1e-4, log_every=10,
+                     checkpoint_every=10)
+    mesh_train.train(tmp_path / "d.h5", tmp_path / "old", old_cfg, tc, progress=False)
+    # a model.json written before the option existed has no viscosity_feature key
+    meta = tmp_path / "old" / "model" / "model.json"
+    info = json.loads(meta.read_text())
+    del info["config"]["viscosity_feature"]
+    meta.write_text(json.dumps(info))
+    old, old_params, info = mesh_train.load_model(tmp_path / "old" / "model")
+    assert old.config.viscosity_feature is False
+
+    new_cfg = dataclasses.replace(old_cfg, viscosity_feature=True, noise_std=0.001)
+    trajs = mesh_train.load_cylinder(tmp_path / "d.h5")
+    new = MeshNet(new_cfg, dataclasses.replace(old.stats, viscosity=mesh_train.viscosity_stats(
+        trajs)))
+    graph = mesh_train.graph_of(trajs[1], tuple(info["padding"]))
+    template = new.init(jax.random.PRNGKey(0), graph)
+    params, stats = mesh_train.fine_tune_start(tmp_path / "old" / "model", new_cfg, template,
+                                               new.stats)
+    grown = MeshNet(new_cfg, stats)
+    n = len(trajs[1]["mesh_pos"])
+    v = jnp.asarray(np.pad(trajs[1]["velocity"][3], ((0, info["padding"][0] - n), (0, 0))))
+    np.testing.assert_allclose(np.asarray(grown.normalized_output(params, graph, v)),
+                               np.asarray(old.normalized_output(old_params, graph, v)),
+                               rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="differs"):
+        mesh_train.fine_tune_start(tmp_path / "old" / "model",
+                                   dataclasses.replace(new_cfg, latent=8), template, new.stats)
+    # and training from it runs and learns the new input
+    tc2 = dataclasses.replace(tc, steps=20)
+    _, p = mesh_train.train(tmp_path / "d.h5", tmp_path / "new", new_cfg, tc2, progress=False,
+                            init_from=tmp_path / "old" / "model")
+    assert np.any(np.asarray(p["params"]["node_encoder"]["hidden_0"]["kernel"])[2] != 0)

@@ -119,8 +119,9 @@ def _train_mesh(args) -> int:
                        push_forward=args.push_forward, seed=args.seed,
                        checkpoint_every=args.checkpoint_every)
     cfg = MeshNetConfig(latent=args.latent, mp_steps=args.mp_steps, mlp_layers=args.mlp_layers,
-                        noise_std=0.02 if args.noise_std is None else args.noise_std)
-    train(args.data[0], args.out, cfg, tcfg)
+                        noise_std=0.02 if args.noise_std is None else args.noise_std,
+                        viscosity_feature=not args.no_viscosity)
+    train(args.data[0], args.out, cfg, tcfg, init_from=args.init_from)
     print(f"model written to {args.out}/model")
     return 0
 
@@ -311,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--checkpoint-every", type=int, default=500)
     t.add_argument("--init-from", default=None,
                    help="model folder to fine-tune from (same configuration, fresh optimiser)")
+    t.add_argument("--no-viscosity", action="store_true",
+                   help="mesh: do not give the flow's viscosity to the network")
     t.set_defaults(func=_train)
 
     r = sub.add_parser("rollout", help="roll a trained GNS or MeshGraphNet out against a "

@@ -22,7 +22,8 @@ import jax
 import numpy as np
 
 from ..cfd.analysis import shedding_metrics
-from .meshnet import MeshNet, pad_mesh
+from .mesh_train import graph_of
+from .meshnet import MeshNet
 
 
 def cylinder_sides(cells: np.ndarray, on_cylinder: np.ndarray) -> np.ndarray:
@@ -66,7 +67,8 @@ def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor
                         repeats: int = 3) -> dict:
     """Metrics of one held-out trajectory (see the module docstring)."""
     n = len(traj["mesh_pos"])
-    graph = pad_mesh(traj["mesh_pos"], traj["cells"], traj["node_type"], *padding)
+    graph = graph_of(traj, padding)
+    model.check_graph(graph)
     v0 = np.zeros((padding[0], 2), np.float32)
     v0[:n] = traj["velocity"][0]
     F = len(traj["velocity"])

@@ -51,9 +51,19 @@ def padding_for(trajs: list[dict], multiple: int = 64) -> tuple[int, int]:
     return up(n), up(e)
 
 
-def stats_from_metadata(meta: dict, trajs: list[dict], noise_std: float) -> MeshStats:
-    """Normalisers from the dataset metadata (noise folded into the stds) and the mean mesh
-    edge length of ``trajs`` as the edge scale."""
+def viscosity_stats(trajs: list[dict]) -> Normalizer:
+    """Normaliser of ln(nu) (nu in m^2/s, from each trajectory's ``attrs["nu"]``); a std
+    below 1e-6 (one viscosity) is replaced by 1."""
+    log_nu = np.log([float(t["attrs"]["nu"]) for t in trajs])
+    std = float(np.std(log_nu))
+    f = jnp.result_type(float)
+    return Normalizer(jnp.asarray(np.mean(log_nu), f), jnp.asarray(std if std > 1e-6 else 1.0, f))
+
+
+def stats_from_metadata(meta: dict, trajs: list[dict], noise_std: float,
+                        viscosity_feature: bool = True) -> MeshStats:
+    """Normalisers from the dataset metadata (noise folded into the stds), the mean mesh
+    edge length of ``trajs`` as the edge scale and, if asked, the ln(nu) normaliser."""
     f = jnp.result_type(float)
     vel = Normalizer(jnp.asarray(meta["velocity_mean"], f),
                      combine_std(meta["velocity_std"], noise_std))
@@ -65,12 +75,20 @@ def stats_from_metadata(meta: dict, trajs: list[dict], noise_std: float) -> Mesh
         s, r = mesh_edges(t["cells"])
         lengths.append(np.linalg.norm(t["mesh_pos"][s] - t["mesh_pos"][r], axis=1))
     scale = float(np.mean(np.concatenate(lengths)))
-    return MeshStats(vel, Normalizer(jnp.asarray(t_mean, f), jnp.asarray(t_std, f)), scale)
+    return MeshStats(vel, Normalizer(jnp.asarray(t_mean, f), jnp.asarray(t_std, f)), scale,
+                     viscosity_stats(trajs) if viscosity_feature else None)
+
+
+def graph_of(traj: dict, padding: tuple[int, int]) -> MeshGraph:
+    """The padded graph of one trajectory, with its viscosity ``attrs["nu"]`` (m^2/s)."""
+    nu = traj["attrs"].get("nu")
+    return pad_mesh(traj["mesh_pos"], traj["cells"], traj["node_type"], *padding,
+                    viscosity=None if nu is None else float(nu))
 
 
 def graphs_of(trajs: list[dict], padding: tuple[int, int]) -> MeshGraph:
     """Stacked padded graphs (leading axis = trajectory)."""
-    gs = [pad_mesh(t["mesh_pos"], t["cells"], t["node_type"], *padding) for t in trajs]
+    gs = [graph_of(t, padding) for t in trajs]
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gs)
 
 
@@ -98,7 +116,10 @@ def save_model(out: Path, model: MeshNet, params, padding, info: dict) -> None:
         stats=dict(velocity_mean=np.asarray(st.velocity.mean).tolist(),
                    velocity_std=np.asarray(st.velocity.std).tolist(),
                    target_mean=np.asarray(st.target.mean).tolist(),
-                   target_std=np.asarray(st.target.std).tolist(), edge_scale=st.edge_scale),
+                   target_std=np.asarray(st.target.std).tolist(), edge_scale=st.edge_scale,
+                   **({} if st.viscosity is None else dict(
+                       log_viscosity_mean=float(st.viscosity.mean),
+                       log_viscosity_std=float(st.viscosity.std)))),
         **info), indent=2, default=str))
 
 
@@ -108,14 +129,18 @@ def load_model(path: str | Path):
     info = json.loads((path / "model.json").read_text())
     s = info["stats"]
     f = jnp.result_type(float)
+    nu = None
+    if "log_viscosity_mean" in s:
+        nu = Normalizer(jnp.asarray(s["log_viscosity_mean"], f),
+                        jnp.asarray(s["log_viscosity_std"], f))
     stats = MeshStats(Normalizer(jnp.asarray(s["velocity_mean"], f),
                                  jnp.asarray(s["velocity_std"], f)),
                       Normalizer(jnp.asarray(s["target_mean"], f),
-                                 jnp.asarray(s["target_std"], f)), float(s["edge_scale"]))
-    model = MeshNet(MeshNetConfig(**info["config"]), stats)
+                                 jnp.asarray(s["target_std"], f)), float(s["edge_scale"]), nu)
+    model = MeshNet(MeshNetConfig(**{"viscosity_feature": False, **info["config"]}), stats)
     n, e = info["padding"]
     dummy = MeshGraph(jnp.zeros((n, 2)), jnp.zeros(n, jnp.int32), jnp.zeros(e, jnp.int32),
-                      jnp.zeros(e, jnp.int32), jnp.zeros(e, bool))
+                      jnp.zeros(e, jnp.int32), jnp.zeros(e, bool), jnp.ones(()))
     params = serialization.from_bytes(model.init(jax.random.PRNGKey(0), dummy),
                                       (path / "params.msgpack").read_bytes())
     return model, params, info
@@ -139,10 +164,43 @@ def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key, n_pu
     return jnp.sum(w[:, None] * err**2) / (3 * jnp.maximum(w.sum(), 1.0))
 
 
+def _grow_node_inputs(path, old: jax.Array, new: jax.Array) -> jax.Array:
+    """``old`` param, or for the node encoder's first kernel one zero row inserted after the
+    two velocity inputs (the viscosity input), so the grown network computes the same."""
+    if old.shape == new.shape:
+        return old
+    name = jax.tree_util.keystr(path)
+    if ("node_encoder" in name and "hidden_0" in name and "kernel" in name
+            and new.shape == (old.shape[0] + 1, *old.shape[1:])):
+        return jnp.concatenate([old[:2], jnp.zeros_like(old[:1]), old[2:]])
+    raise ValueError(f"init_from: parameter {name} has shape {old.shape}, expected {new.shape}")
+
+
+def fine_tune_start(model_dir, cfg: MeshNetConfig, template, data_stats: MeshStats):
+    """(params, stats) to fine-tune from the model in ``model_dir``.
+
+    Its configuration must equal ``cfg`` except the training noise and, going from a model
+    without the viscosity input to one with it, ``viscosity_feature`` (the new input's weights
+    start at zero, so the start computes what the old model did). The old normalisers are
+    kept; the ln(nu) one comes from the data. ``template``: params of the new network."""
+    old, old_params, _ = load_model(model_dir)
+    a, b = dataclasses.asdict(old.config), dataclasses.asdict(cfg)
+    grow = b["viscosity_feature"] and not a["viscosity_feature"]
+    for k in ("noise_std", "viscosity_feature") if grow else ("noise_std",):
+        a.pop(k), b.pop(k)
+    if a != b:
+        raise ValueError(f"init_from {model_dir}: its configuration {a} differs from {b} "
+                         "beyond the training noise (and adding the viscosity input)")
+    nu = old.stats.viscosity if old.config.viscosity_feature else data_stats.viscosity
+    stats = MeshStats(old.stats.velocity, old.stats.target, old.stats.edge_scale, nu)
+    return jax.tree_util.tree_map_with_path(_grow_node_inputs, old_params, template), stats
+
+
 def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=None,
-          progress: bool = True):
+          progress: bool = True, init_from=None):
     """Train (or resume) a MeshGraphNet; writes checkpoints, ``train_log.csv`` and
-    ``out_dir/model``. Returns (model, params)."""
+    ``out_dir/model``. ``init_from``: a model folder to fine-tune from
+    (:func:`fine_tune_start`). Returns (model, params)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     trajs = load_cylinder(train_path)
@@ -151,8 +209,12 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
     graphs = graphs_of(trajs, padding)
     vel, pres = padded_fields(trajs, padding[0])
     opt = make_optimizer(tcfg)
+    model.check_graph(graphs)
     params = model.init(jax.random.PRNGKey(tcfg.seed),
                         jax.tree_util.tree_map(lambda a: a[0], graphs))
+    if init_from is not None:
+        params, stats = fine_tune_start(init_from, cfg, params, model.stats)
+        model = MeshNet(cfg, stats)
     opt_state, step = opt.init(params), 0
     ckpt = out / "checkpoint.msgpack"
     if ckpt.exists():
@@ -169,7 +231,7 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
-    info = dict(train=dataclasses.asdict(tcfg), data=str(train_path),
+    info = dict(train=dataclasses.asdict(tcfg), data=str(train_path), init_from=init_from,
                 n_trajectories=len(trajs), frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
     B, F, K = tcfg.batch_size, vel.shape[1], tcfg.push_forward
     if not 0 <= K < F - 1:
