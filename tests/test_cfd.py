@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from diffgns.cfd.analysis import shedding_metrics, shedding_onset
-from diffgns.cfd.datagen import CylinderRun, CylinderSampling, generate_cylinder, sample_case
+from diffgns.cfd.datagen import (
+    CylinderRun,
+    CylinderSampling,
+    generate_cylinder,
+    sample_case,
+    time_case,
+)
 from diffgns.cfd.dataset import iter_cylinder_dataset
 from diffgns.cfd.fem import assemble
 from diffgns.cfd.mesh import FLUID, INFLOW, OUTFLOW, WALL, ChannelGeometry, build_mesh
@@ -202,6 +208,12 @@ def test_dataset_round_trip_and_resume(tmp_path):
         assert sorted(f) == ["00000", "00001", "00002"]
         assert f["00000"].attrs["cfd_wall_time_s"] == wall0
     assert json.loads(path.with_name("cyl.metadata.json").read_text())["n_trajectories"] == 3
+    # the same-run CFD timing of a stored case, on the run settings stored with the data
+    run = CylinderRun(**meta["run"])
+    cost = time_case(items[0][2], run, n_frames=1)
+    assert np.isfinite(cost) and 0 < cost < 50 * items[0][2]["cfd_wall_per_sim_second"]
+    with pytest.raises(ValueError, match="n_frames"):
+        time_case(items[0][2], run, n_frames=0)
 
 
 def test_dataset_rejects_bad_ranges(tmp_path, capsys):

@@ -144,6 +144,28 @@ def simulate_case(case: dict, run: CylinderRun, progress: bool = False) -> tuple
     return arrays, attrs
 
 
+def time_case(case: dict, run: CylinderRun, n_frames: int = 50,
+              repeats: int = 1) -> float:
+    """CFD wall seconds per simulated second of ``case`` (a trajectory's attrs) on the mesh
+    and time step :func:`simulate_case` uses, timed now (assembly excluded, median of
+    ``repeats`` runs of ``n_frames`` frames from the Stokes start), so that a speed
+    comparison can be made against the CFD in the same run."""
+    if not (isinstance(n_frames, int) and n_frames >= 1 and repeats >= 1):
+        raise ValueError(f"time_case: n_frames and repeats must be >= 1, got {n_frames}, "
+                         f"{repeats}")
+    geom = ChannelGeometry(length=case["length"], height=case["height"],
+                           center=tuple(case["center"]), radius=case["radius"])
+    mesh = build_mesh(geom, size_cylinder=run.size_cylinder, size_far=run.size_far,
+                      grading=run.grading, size_wake=run.size_wake,
+                      wake_length=run.wake_length)
+    dt = choose_dt(mesh, case["u_max"], run.frame_dt, run.cfl)
+    prm = FlowParams(u_max=case["u_max"], nu=case["nu"], dt=dt, kick=run.kick,
+                     kick_time=run.kick_time)
+    walls = [run_case(mesh, prm, n_frames * run.frame_dt, run.frame_dt).wall_per_sim_second
+             for _ in range(repeats)]
+    return float(np.median(walls))
+
+
 def generate_cylinder(path, n: int, seed: int = 0, sampling: CylinderSampling | None = None,
                       run: CylinderRun | None = None, progress: bool = True) -> Path:
     """Write ``n`` cylinder-flow trajectories to ``path`` (resumes; see module docstring)."""
