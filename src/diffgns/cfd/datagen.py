@@ -115,8 +115,8 @@ class CylinderRun:
             raise ValueError(f"CylinderRun.spinup must be >= 0, got {self.spinup}")
 
 
-def simulate_case(case: dict, run: CylinderRun, progress: bool = False) -> tuple[dict, dict]:
-    """Mesh and run one case; returns (arrays, attrs) for :class:`CylinderDatasetWriter`."""
+def case_setup(case: dict, run: CylinderRun) -> tuple[ChannelMesh, FlowParams]:
+    """The mesh and flow parameters (time step by :func:`choose_dt`) of one case."""
     geom = ChannelGeometry(length=case["length"], height=case["height"],
                            center=tuple(case["center"]), radius=case["radius"])
     mesh = build_mesh(geom, size_cylinder=run.size_cylinder, size_far=run.size_far,
@@ -125,6 +125,13 @@ def simulate_case(case: dict, run: CylinderRun, progress: bool = False) -> tuple
     dt = choose_dt(mesh, case["u_max"], run.frame_dt, run.cfl)
     prm = FlowParams(u_max=case["u_max"], nu=case["nu"], dt=dt, kick=run.kick,
                      kick_time=run.kick_time)
+    return mesh, prm
+
+
+def simulate_case(case: dict, run: CylinderRun, progress: bool = False) -> tuple[dict, dict]:
+    """Mesh and run one case; returns (arrays, attrs) for :class:`CylinderDatasetWriter`."""
+    mesh, prm = case_setup(case, run)
+    dt = prm.dt
     u_bar = 2.0 * case["u_max"] / 3.0
     spin = math.ceil(run.spinup * 2 * case["radius"] / u_bar / run.frame_dt - 1e-9) \
         * run.frame_dt
@@ -153,14 +160,7 @@ def time_case(case: dict, run: CylinderRun, n_frames: int = 50,
     if not (isinstance(n_frames, int) and n_frames >= 1 and repeats >= 1):
         raise ValueError(f"time_case: n_frames and repeats must be >= 1, got {n_frames}, "
                          f"{repeats}")
-    geom = ChannelGeometry(length=case["length"], height=case["height"],
-                           center=tuple(case["center"]), radius=case["radius"])
-    mesh = build_mesh(geom, size_cylinder=run.size_cylinder, size_far=run.size_far,
-                      grading=run.grading, size_wake=run.size_wake,
-                      wake_length=run.wake_length)
-    dt = choose_dt(mesh, case["u_max"], run.frame_dt, run.cfl)
-    prm = FlowParams(u_max=case["u_max"], nu=case["nu"], dt=dt, kick=run.kick,
-                     kick_time=run.kick_time)
+    mesh, prm = case_setup(case, run)
     walls = [run_case(mesh, prm, n_frames * run.frame_dt, run.frame_dt).wall_per_sim_second
              for _ in range(repeats)]
     return float(np.median(walls))
