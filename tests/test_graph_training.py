@@ -211,3 +211,31 @@ def test_fine_tuning_keeps_the_normaliser_and_may_change_only_the_noise(tmp_path
     wider = GNS(dataclasses.replace(gns.config, latent=32), gns.normalizer)
     with pytest.raises(ValueError, match="latent"):
         _initial_model(tmp_path / "m", wider)
+
+
+def test_average_models_is_the_elementwise_mean_of_compatible_models(tmp_path):
+    import dataclasses
+
+    from diffgns.cli import main
+    from diffgns.graph.train_loop import average_models, load_model, save_model
+
+    trajs = synthetic()
+    gns = small_gns(trajs)
+    pa = _init(gns, trajs)
+    pb = jax.tree.map(lambda x: x * 3.0 + 1.0, pa)
+    save_model(tmp_path / "a", gns, pa, {})
+    save_model(tmp_path / "b", GNS(dataclasses.replace(gns.config, noise_std=1e-6),
+                                   gns.normalizer), pb, {})
+    assert main(["average", str(tmp_path / "a"), str(tmp_path / "b"),
+                 "--out", str(tmp_path / "ab")]) == 0
+    g, p, info = load_model(tmp_path / "ab")
+    assert g.config == gns.config and info["averaged_from"][1].endswith("b")
+    for m, a, b in zip(jax.tree.leaves(p), jax.tree.leaves(pa), jax.tree.leaves(pb)):
+        np.testing.assert_allclose(np.asarray(m), (np.asarray(a) + np.asarray(b)) / 2,
+                                   rtol=1e-6, atol=1e-7)
+    wider = GNS(dataclasses.replace(gns.config, latent=32), gns.normalizer)
+    save_model(tmp_path / "w", wider, _init(wider, trajs), {})
+    with pytest.raises(ValueError, match="different configuration"):
+        average_models([tmp_path / "a", tmp_path / "w"], tmp_path / "x")
+    with pytest.raises(ValueError, match="at least two"):
+        average_models([tmp_path / "a"], tmp_path / "x")

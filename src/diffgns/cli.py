@@ -155,6 +155,13 @@ def _rollout_mesh(args) -> int:
     return 0
 
 
+def _average(args) -> int:
+    from .graph.train_loop import average_models
+
+    print("averaged model written to", average_models(args.models, args.out))
+    return 0
+
+
 def _is_mesh_model(path) -> bool:
     from pathlib import Path
 
@@ -346,6 +353,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .interpret.pipeline import add_arguments
 
+    a = sub.add_parser("average", help="uniform weight average of GNS models fine-tuned from "
+                       "one parent (same network and normaliser)")
+    a.add_argument("models", nargs="+", help="model folders")
+    a.add_argument("--out", required=True, help="folder of the averaged model")
+    a.set_defaults(func=_average)
     y = sub.add_parser("symbolic", help="recover n-body force laws from a message network "
                        "by symbolic regression")
     add_arguments(y)

@@ -64,6 +64,26 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
     return gns, params, info
 
 
+def average_models(paths, out: str | Path) -> Path:
+    """Write to ``out`` the uniform average of the parameters of models ``paths`` (a "model
+    soup"). Meant for models fine-tuned from one parent: their networks and normalisers must
+    be identical (only the training noise, recorded in the config, may differ; the first
+    model's config is kept). Returns ``out``."""
+    if len(paths) < 2:
+        raise ValueError("average_models needs at least two models")
+    models = [load_model(p) for p in paths]
+    g0, _, info0 = models[0]
+    for p, (g, _, info) in zip(paths[1:], models[1:]):
+        if dataclasses.replace(g.config, noise_std=g0.config.noise_std) != g0.config:
+            raise ValueError(f"cannot average {p} with {paths[0]}: different configuration")
+        if info["normalizer"] != info0["normalizer"]:
+            raise ValueError(f"cannot average {p} with {paths[0]}: different normaliser")
+    avg = jax.tree.map(lambda *a: sum(a) / len(a), *[m[1] for m in models])
+    info = dict(info0, averaged_from=[str(p) for p in paths])
+    save_model(Path(out), g0, avg, info)
+    return Path(out)
+
+
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     """Load training data and build the GNS whose normaliser matches it."""
     trajs, meta = [], {}
