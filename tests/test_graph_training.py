@@ -239,3 +239,9 @@ def test_average_models_is_the_elementwise_mean_of_compatible_models(tmp_path):
         average_models([tmp_path / "a", tmp_path / "w"], tmp_path / "x")
     with pytest.raises(ValueError, match="at least two"):
         average_models([tmp_path / "a"], tmp_path / "x")
+    assert main(["average", str(tmp_path / "a"), str(tmp_path / "w"),
+                 "--out", str(tmp_path / "x")]) == 2  # a clear error, no traceback
+    (tmp_path / "mesh").mkdir()
+    (tmp_path / "mesh" / "config.json").write_text('{"meshnet": {}}')
+    with pytest.raises(ValueError, match="not a particle GNS"):
+        average_models([tmp_path / "a", tmp_path / "mesh"], tmp_path / "x")

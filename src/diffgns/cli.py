@@ -158,7 +158,12 @@ def _rollout_mesh(args) -> int:
 def _average(args) -> int:
     from .graph.train_loop import average_models
 
-    print("averaged model written to", average_models(args.models, args.out))
+    try:
+        out = average_models(args.models, args.out)
+    except ValueError as e:
+        print(f"diffgns average: error: {e}", file=sys.stderr)
+        return 2
+    print("averaged model written to", out)
     return 0
 
 

@@ -71,6 +71,9 @@ def average_models(paths, out: str | Path) -> Path:
     model's config is kept). Returns ``out``."""
     if len(paths) < 2:
         raise ValueError("average_models needs at least two models")
+    for p in paths:
+        if "gns" not in json.loads((Path(p) / "config.json").read_text()):
+            raise ValueError(f"{p} is not a particle GNS model folder")
     models = [load_model(p) for p in paths]
     g0, _, info0 = models[0]
     for p, (g, _, info) in zip(paths[1:], models[1:]):
