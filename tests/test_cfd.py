@@ -9,6 +9,7 @@ from diffgns.cfd.analysis import shedding_metrics, shedding_onset
 from diffgns.cfd.datagen import (
     CylinderRun,
     CylinderSampling,
+    case_setup,
     generate_cylinder,
     sample_case,
     time_case,
@@ -210,6 +211,8 @@ def test_dataset_round_trip_and_resume(tmp_path):
     assert json.loads(path.with_name("cyl.metadata.json").read_text())["n_trajectories"] == 3
     # the same-run CFD timing of a stored case, on the run settings stored with the data
     run = CylinderRun(**meta["run"])
+    mesh, prm = case_setup(items[0][2], run)  # time_case times the stored case's mesh and dt
+    assert mesh.n_nodes == items[0][2]["n_vertices"] and prm.dt == items[0][2]["dt"]
     cost = time_case(items[0][2], run, n_frames=1)
     assert np.isfinite(cost) and 0 < cost < 50 * items[0][2]["cfd_wall_per_sim_second"]
     with pytest.raises(ValueError, match="n_frames"):

@@ -77,8 +77,9 @@ def average_models(paths, out: str | Path) -> Path:
     models = [load_model(p) for p in paths]
     g0, _, info0 = models[0]
     for p, (g, _, info) in zip(paths[1:], models[1:]):
-        if dataclasses.replace(g.config, noise_std=g0.config.noise_std) != g0.config:
-            raise ValueError(f"cannot average {p} with {paths[0]}: different configuration")
+        if diff := _network_difference(g0.config, g.config):
+            raise ValueError(f"cannot average {p} with {paths[0]}: different configuration "
+                             f"(first, this) = {diff}")
         if info["normalizer"] != info0["normalizer"]:
             raise ValueError(f"cannot average {p} with {paths[0]}: different normaliser")
     avg = jax.tree.map(lambda *a: sum(a) / len(a), *[m[1] for m in models])
@@ -108,12 +109,17 @@ def _initial_model(path, gns: GNS):
     except for the training noise ``noise_std`` (a training setting: the model's normaliser,
     which folded in its own noise, is kept)."""
     base, params, _ = load_model(path)
-    if dataclasses.replace(base.config, noise_std=gns.config.noise_std) != gns.config:
-        diff = {k: (getattr(base.config, k), v) for k, v in dataclasses.asdict(gns.config)
-                .items() if getattr(base.config, k) != v and k != "bounds"}
+    if diff := _network_difference(base.config, gns.config):
         raise ValueError(f"--init-from model {path} has a different configuration: "
                          f"(model, requested) = {diff}")
     return GNS(gns.config, base.normalizer), params
+
+
+def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:
+    """{field: (a's, b's)} of the config fields in which a and b differ, ignoring the training
+    noise ``noise_std`` (empty when they describe the same network)."""
+    return {k: (getattr(a, k), getattr(b, k)) for k in dataclasses.asdict(a)
+            if k != "noise_std" and getattr(a, k) != getattr(b, k)}
 
 
 def _union_bounds(trajs):
