@@ -28,7 +28,7 @@ symbolic: $(VENV)/.installed-test
 
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks
-	$(PY) -m pytest -q -x
+	$(PY) -m pytest -q -x -n 2
 
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow
@@ -47,6 +47,9 @@ bench-gns: $(VENV)/.installed-test
 	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_columns --data data/columns_test.h5
 	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_cg16 --data data/columns16_test.h5 \
 		--out benchmarks/results/gns_cg16_accuracy.json
+	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_cg16_pfn --data data/columns16_test.h5 \
+		--out benchmarks/results/gns_cg16_pfn_accuracy.json --repeats 5 --mpm-1e-5-frames 10
+	$(PY) benchmarks/gns_neighbor_list.py --model models/gns_cg16_pfn --data data/columns16_test.h5
 	$(PY) benchmarks/hybrid_pareto.py
 	$(PY) benchmarks/inverse_gns_memory.py
 	$(PY) benchmarks/inverse_gns_bias.py

@@ -29,16 +29,18 @@ def _points(n=150, seed=0):
     return x
 
 
-@pytest.fixture(scope="module")
-def builder():
-    return NeighborBuilder(BOUNDS, R)
+@pytest.fixture(scope="module", params=["cell_list", "all_pairs"])
+def builder(request):
+    """Both candidate paths: a cell list (forced) and all-pairs (the default up to 1024)."""
+    return NeighborBuilder(BOUNDS, R, all_pairs_max=0 if request.param == "cell_list" else 1024)
 
 
 def test_matches_brute_force_with_strict_radius(builder):
     x = _points()
     nbrs = builder.allocate(x)
     assert not did_overflow(nbrs)
-    assert nbrs.cell_list_capacity is not None  # the cell-list path is the one tested
+    # the path the fixture asks for is the one tested
+    assert (nbrs.cell_list_capacity is not None) == (builder.all_pairs_max < len(x))
     got = edge_set(*edges(nbrs, len(x), self_edges=False))
     want = brute_force_edges(x, R)
     assert got == want
@@ -101,6 +103,21 @@ def test_overflow_is_detected_and_fixed(builder):
     assert edge_set(*edges(fixed, 120, False)) == want
     # The overflow bit is sticky until re-allocation.
     assert bool(did_overflow(builder.update(x_sparse, stale)))
+
+
+def test_all_pairs_list_survives_a_pile_up_that_overflows_the_cell_list():
+    """Particles crowding into one cell overflow a cell list's slots (a re-allocation);
+    the all-pairs list has only the edge buffer, which a pile-up of few particles fits."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform((-1.0, 0.0), (1.0, 2.0), (100, 2)).astype(np.float32)
+    piled = x.copy()
+    piled[:6] = np.float32((0.01, 1.01)) + rng.uniform(0, 0.1, (6, 2)).astype(np.float32)
+    cells = NeighborBuilder(BOUNDS, R, all_pairs_max=0)
+    assert bool(did_overflow(cells.update(piled, cells.allocate(x))))
+    pairs = NeighborBuilder(BOUNDS, R, capacity_multiplier=2.0)
+    upd = pairs.update(piled, pairs.allocate(x))
+    assert not bool(did_overflow(upd))
+    assert edge_set(*edges(upd, 100, False)) == brute_force_edges(piled, R)
 
 
 def test_rejects_bad_arguments():

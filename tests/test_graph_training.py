@@ -190,7 +190,7 @@ def test_two_device_step_equals_one_device_step(tmp_path):
     assert res["max_param_diff"] < 1e-6
 
 
-def test_fine_tuning_keeps_the_normaliser_and_may_change_only_the_noise(tmp_path):
+def test_fine_tuning_keeps_the_normaliser_and_may_change_only_noise_and_head_room(tmp_path):
     import dataclasses
 
     from diffgns.graph.train_loop import _initial_model, save_model
@@ -199,11 +199,12 @@ def test_fine_tuning_keeps_the_normaliser_and_may_change_only_the_noise(tmp_path
     gns = small_gns(trajs)
     params = _init(gns, trajs)
     save_model(tmp_path / "m", gns, params, {})
-    quieter = GNS(dataclasses.replace(gns.config, noise_std=3e-5),
+    quieter = GNS(dataclasses.replace(gns.config, noise_std=3e-5, capacity_multiplier=1.1),
                   Normalizers.from_metadata({"vel_mean": [0, 0], "vel_std": [1, 1],
                                              "acc_mean": [0, 0], "acc_std": [1, 1]}))
     tuned, p = _initial_model(tmp_path / "m", quieter)
     assert tuned.config.noise_std == 3e-5
+    assert tuned.config.capacity_multiplier == 1.1  # neighbour-list head-room: not the network
     np.testing.assert_allclose(tuned.normalizer.velocity.std, gns.normalizer.velocity.std,
                                rtol=1e-6)  # the base model's scale, not the new one's
     for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(params)):

@@ -4,9 +4,13 @@ A :class:`NeighborBuilder` wraps ``jax_md.partition.neighbor_list`` with
 
 * free (non-periodic) space, ``space.free()``;
 * the ``Sparse`` format: ``nbrs.idx`` is ``(2, capacity)`` int32, padded with ``N``;
-* a cell list sized from the domain bounds (used by jax-md whenever the cell side, the
-  radius, is below a third of the domain in every dimension, otherwise it falls back to
-  an all-pairs candidate list);
+* for more than ``all_pairs_max`` particles, a cell list sized from the domain bounds
+  (used by jax-md whenever the cell side, the radius, is below a third of the domain in
+  every dimension); for up to ``all_pairs_max`` particles (default 1024), an all-pairs
+  candidate list. The all-pairs list costs O(N^2) distances per update -- for the few
+  hundred nodes of a coarse-grained GNS that is cheaper than binning, and it has only one
+  capacity (the edge buffer), so a particle pile-up that outgrows a cell's slots cannot force
+  a re-allocation (which, with the cell list, also enlarged the edge buffer);
 * positions shifted so that the domain's lower corner is the origin.
 
 Radius convention (checked in jax-md 0.2.x, ``partition.py``): a pair ``(i, j)`` with
@@ -55,9 +59,12 @@ class NeighborBuilder:
         bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain, in position units (m).
         radius: connectivity radius ``R`` (same units); pairs with ``d < R`` are neighbours.
         capacity_multiplier: head-room factor for the edge buffer and cell list (>= 1).
+        all_pairs_max: largest particle count that uses the all-pairs candidate list
+            instead of a cell list (chosen at :meth:`allocate`, where N is known).
     """
 
-    def __init__(self, bounds, radius: float, capacity_multiplier: float = 1.25):
+    def __init__(self, bounds, radius: float, capacity_multiplier: float = 1.25,
+                 all_pairs_max: int = 1024):
         self.bounds = _as_bounds(bounds)
         self.radius = float(radius)
         if self.radius <= 0:
@@ -67,11 +74,12 @@ class NeighborBuilder:
         self.capacity_multiplier = float(capacity_multiplier)
         self.lower = np.array([lo for lo, _ in self.bounds], dtype=np.float32)
         self.box = np.array([hi - lo for lo, hi in self.bounds], dtype=np.float32)
+        self.all_pairs_max = int(all_pairs_max)
         displacement, _ = space.free()
-        self._fns = partition.neighbor_list(
+        self._fns, self._fns_all_pairs = (partition.neighbor_list(
             displacement, jnp.asarray(self.box), self.radius, dr_threshold=0.0,
             capacity_multiplier=self.capacity_multiplier, format=partition.Sparse,
-        )
+            disable_cell_list=off) for off in (False, True))
 
     def _shift(self, x: jax.Array) -> jax.Array:
         x = jax.lax.stop_gradient(jnp.asarray(x))
@@ -83,7 +91,9 @@ class NeighborBuilder:
         ``extra_capacity`` adds ``N * extra_capacity`` edge slots and ``extra_capacity`` slots
         per cell on top of ``capacity_multiplier`` times the current need.
         """
-        return self._fns.allocate(self._shift(x), extra_capacity=int(extra_capacity))
+        x = self._shift(x)
+        fns = self._fns_all_pairs if x.shape[0] <= self.all_pairs_max else self._fns
+        return fns.allocate(x, extra_capacity=int(extra_capacity))
 
     def update(self, x: jax.Array, nbrs: partition.NeighborList) -> partition.NeighborList:
         """Rebuild the list for positions ``x`` (N, 2) with the same capacity (jit-safe)."""

@@ -117,9 +117,10 @@ def _initial_model(path, gns: GNS):
 
 def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:
     """{field: (a's, b's)} of the config fields in which a and b differ, ignoring the training
-    noise ``noise_std`` (empty when they describe the same network)."""
+    noise ``noise_std`` and the neighbour-list head-room ``capacity_multiplier`` (empty when
+    they describe the same network)."""
     return {k: (getattr(a, k), getattr(b, k)) for k in dataclasses.asdict(a)
-            if k != "noise_std" and getattr(a, k) != getattr(b, k)}
+            if k not in ("noise_std", "capacity_multiplier") and getattr(a, k) != getattr(b, k)}
 
 
 def _union_bounds(trajs):
