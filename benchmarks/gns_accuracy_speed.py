@@ -22,12 +22,11 @@ from functools import partial
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from diffgns import MPM
 from diffgns.graph.data import load_trajectories
-from diffgns.graph.evaluate import rollout_reference, score
+from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
 from diffgns.scene_builders import column_collapse
 
@@ -50,11 +49,7 @@ def mpm_runner(scene, n_frames: int):
 def gns_runner(gns, params, ref):
     """Zero-argument function running the GNS rollout of :func:`rollout_reference` (compiled,
     with the neighbour list that the first call sized)."""
-    C = gns.config.history
-    pos = jnp.asarray(ref.positions)
-    hist = jnp.swapaxes(pos[: C + 1], 0, 1)
-    ptype, mat = jnp.asarray(ref.particle_type), jnp.asarray(ref.material)
-    n_steps = pos.shape[0] - C - 1
+    hist, ptype, mat, n_steps = reference_inputs(gns, ref)
     _, nbrs = gns.rollout_safe(params, hist, ptype, mat, n_steps)
     return lambda: gns.rollout_safe(params, hist, ptype, mat, n_steps, nbrs)[0]
 

@@ -24,10 +24,10 @@ from functools import partial
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from diffgns.graph.data import load_trajectories
+from diffgns.graph.evaluate import reference_inputs
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import NeighborBuilder
 from diffgns.graph.train_loop import load_model
@@ -54,13 +54,9 @@ def main():
     mults = sorted({1.25, gns.config.capacity_multiplier}, reverse=True)
     settings = [(m, cl) for cl in (True, False) for m in mults]
     names = [f"{'cell list' if cl else 'all pairs'}, x{m:g}" for m, cl in settings]
-    C = gns.config.history
     rows = []
     for ref in refs:
-        pos = jnp.asarray(ref.positions)
-        hist = jnp.swapaxes(pos[: C + 1], 0, 1)
-        pt, mat = jnp.asarray(ref.particle_type), jnp.asarray(ref.material)
-        n_steps = pos.shape[0] - C - 1
+        hist, pt, mat, n_steps = reference_inputs(gns, ref)
         runs, caps, outs = [], [], []
         for m, cl in settings:
             g = _variant(gns, m, cl)
@@ -74,7 +70,7 @@ def main():
                 t0 = time.perf_counter()
                 jax.block_until_ready(run()[0])
                 times[r, i] = time.perf_counter() - t0
-        row = dict(nodes=int(pos.shape[1]), steps=int(n_steps),
+        row = dict(nodes=int(hist.shape[0]), steps=int(n_steps),
                    seconds=dict(zip(names, np.median(times, 0).tolist())),
                    capacity=dict(zip(names, caps)),
                    max_position_diff_m=dict(zip(names, [float(np.abs(o - outs[0]).max())

@@ -20,6 +20,16 @@ from .gns import GNS
 HORIZONS = (1, 10, 50, 100)
 
 
+def reference_inputs(gns: GNS, ref: Trajectory):
+    """Rollout inputs from the first ``history + 1`` frames of ``ref``: ``(initial history
+    (N, C+1, 2) m, particle_type (N,), material (N,), number of frames to predict)``."""
+    C = gns.config.history
+    pos = jnp.asarray(ref.positions)
+    hist = jnp.swapaxes(pos[: C + 1], 0, 1)
+    return (hist, jnp.asarray(ref.particle_type), jnp.asarray(ref.material),
+            pos.shape[0] - C - 1)
+
+
 def rollout_reference(gns: GNS, params, ref: Trajectory, n_steps: int | None = None,
                       timed: bool = True):
     """GNS rollout from the first ``history + 1`` frames of ``ref``.
@@ -29,9 +39,8 @@ def rollout_reference(gns: GNS, params, ref: Trajectory, n_steps: int | None = N
     """
     C = gns.config.history
     pos = jnp.asarray(ref.positions)
-    n_steps = pos.shape[0] - C - 1 if n_steps is None else n_steps
-    hist = jnp.swapaxes(pos[: C + 1], 0, 1)
-    ptype, mat = jnp.asarray(ref.particle_type), jnp.asarray(ref.material)
+    hist, ptype, mat, n_all = reference_inputs(gns, ref)
+    n_steps = n_all if n_steps is None else n_steps
     xs, nbrs = gns.rollout_safe(params, hist, ptype, mat, n_steps)  # compiles
     seconds = None
     if timed:
