@@ -32,6 +32,9 @@ the cell list, which is again reported by the flag.
 """
 from __future__ import annotations
 
+import contextlib
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -93,11 +96,23 @@ class NeighborBuilder:
         """
         x = self._shift(x)
         fns = self._fns_all_pairs if x.shape[0] <= self.all_pairs_max else self._fns
-        return fns.allocate(x, extra_capacity=int(extra_capacity))
+        with _jax_md_x64_scatter_warning_ignored():
+            return fns.allocate(x, extra_capacity=int(extra_capacity))
 
     def update(self, x: jax.Array, nbrs: partition.NeighborList) -> partition.NeighborList:
         """Rebuild the list for positions ``x`` (N, 2) with the same capacity (jit-safe)."""
-        return nbrs.update(self._shift(x))
+        with _jax_md_x64_scatter_warning_ignored():
+            return nbrs.update(self._shift(x))
+
+
+@contextlib.contextmanager
+def _jax_md_x64_scatter_warning_ignored():
+    """jax-md's all-pairs pruning scatters ``arange(N)`` (int64 under ``jax_enable_x64``) into
+    an int32 buffer; jax warns about the cast. The indices are < N, so the cast is exact."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="scatter inputs have incompatible types",
+                                category=FutureWarning)
+        yield
 
 
 def did_overflow(nbrs: partition.NeighborList) -> jax.Array:
