@@ -7,10 +7,10 @@ A :class:`NeighborBuilder` wraps ``jax_md.partition.neighbor_list`` with
 * for more than ``all_pairs_max`` particles, a cell list sized from the domain bounds
   (used by jax-md whenever the cell side, the radius, is below a third of the domain in
   every dimension); for up to ``all_pairs_max`` particles (default 1024), an all-pairs
-  candidate list. The all-pairs list costs O(N^2) distances per update -- for the few
-  hundred nodes of a coarse-grained GNS that is cheaper than binning, and it has only one
-  capacity (the edge buffer), so a particle pile-up that outgrows a cell's slots cannot force
-  a re-allocation (which, with the cell list, also enlarged the edge buffer);
+  candidate list. The all-pairs list costs O(N^2) distances per update (176 nodes: 120
+  updates take 0.077 s, as with the cell list, against 0.83 s for the network), and it has
+  only one capacity (the edge buffer), so a particle pile-up that outgrows a cell's slots
+  cannot force a re-allocation (which, with the cell list, also enlarged the edge buffer);
 * positions shifted so that the domain's lower corner is the origin.
 
 Radius convention (checked in jax-md 0.2.x, ``partition.py``): a pair ``(i, j)`` with
