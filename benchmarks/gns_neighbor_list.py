@@ -36,6 +36,7 @@ from diffgns.graph.train_loop import load_model
 def _variant(gns: GNS, multiplier: float, cell_list: bool) -> GNS:
     cfg = dataclasses.replace(gns.config, capacity_multiplier=multiplier)
     g = GNS(cfg, gns.normalizer)
+    # swap the builder before the first (tracing) call; the jitted rollout reads it then
     g.neighbors = NeighborBuilder(cfg.bounds, cfg.radius, multiplier,
                                   all_pairs_max=0 if cell_list else 10**9)
     return g

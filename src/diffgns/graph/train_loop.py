@@ -67,8 +67,8 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
 def average_models(paths, out: str | Path) -> Path:
     """Write to ``out`` the uniform average of the parameters of models ``paths`` (a "model
     soup"). Meant for models fine-tuned from one parent: their networks and normalisers must
-    be identical (only the training noise, recorded in the config, may differ; the first
-    model's config is kept). Returns ``out``."""
+    be identical (only the training noise and the neighbour-list head-room, recorded in the
+    config, may differ; the first model's config is kept). Returns ``out``."""
     if len(paths) < 2:
         raise ValueError("average_models needs at least two models")
     for p in paths:
@@ -106,8 +106,9 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
 
 def _initial_model(path, gns: GNS):
     """(GNS with the model's normaliser, its params) from ``path``; the config must match
-    except for the training noise ``noise_std`` (a training setting: the model's normaliser,
-    which folded in its own noise, is kept)."""
+    except for the training noise ``noise_std`` and the neighbour-list head-room
+    ``capacity_multiplier`` (see :func:`_network_difference`; the model's normaliser, which
+    folded in its own noise, is kept; the requested config is used)."""
     base, params, _ = load_model(path)
     if diff := _network_difference(base.config, gns.config):
         raise ValueError(f"--init-from model {path} has a different configuration: "
