@@ -23,9 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import RESULTS_DIR, machine_info, use_agg, write_json  # noqa: E402
 
-from diffgns.cfd.analysis import shedding_metrics, shedding_onset  # noqa: E402
-from diffgns.cfd.mesh import ChannelGeometry, build_mesh  # noqa: E402
-from diffgns.cfd.solver import FlowParams, run_case  # noqa: E402
+from diffgns.mesh.analysis import shedding_metrics, shedding_onset  # noqa: E402
+from diffgns.mesh.cfd import FlowParams, run_case  # noqa: E402
+from diffgns.mesh.geometry import ChannelGeometry, build_mesh  # noqa: E402
 
 TARGETS = dict(strouhal=(0.295, 0.305), cd_max=(3.22, 3.24), cl_max=(0.99, 1.01))
 TOL = dict(strouhal=0.0, cd_max=0.02, cl_max=0.02)

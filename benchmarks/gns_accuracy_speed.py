@@ -28,7 +28,7 @@ from diffgns import MPM
 from diffgns.graph.data import load_trajectories
 from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 
 def _seconds(fn) -> float:

@@ -5,7 +5,7 @@
 On held-out column collapses (aspect ratios and friction angles not in the GNS training
 set), every simulator is scored against a fine MPM reference (``--reference-cells`` cells
 across the column): final runout error and the material-point position error (mean over
-particles and frames; see ``diffgns.hybrid_compare``). Wall time is the steady-state time of
+particles and frames; see ``diffgns.hybrid.compare``). Wall time is the steady-state time of
 the jitted rollout (compile separated, median of ``--repeats``, block_until_ready), summed
 over the cases. The Pareto front (mean position error against time) is marked in the table
 and the plot (``hybrid_pareto.png``). Every run is also scored against the MPM at the finest
@@ -30,14 +30,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS_DIR, command_line, use_agg, warm_up_jax, write_json  # noqa: E402
 
 from diffgns.graph.train_loop import load_model  # noqa: E402
-from diffgns.hybrid import Schedule  # noqa: E402
-from diffgns.hybrid_compare import (  # noqa: E402
+from diffgns.hybrid.compare import (  # noqa: E402
     column_scene,
     model_cells,
     run_hybrid,
     run_mpm,
     score_against,
 )
+from diffgns.hybrid.simulator import Schedule  # noqa: E402
 
 CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
 

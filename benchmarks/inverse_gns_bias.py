@@ -38,8 +38,8 @@ def scan(col, observed, loaded, phis, history: str, target_phi: float) -> dict:
     import jax
     import jax.numpy as jnp
 
+    from diffgns.inverse.simulators import gns_simulator
     from diffgns.metrics import runout
-    from diffgns.simulators import gns_simulator
 
     obs = observed
     if history == "rest":
@@ -70,7 +70,7 @@ def main() -> None:
     ap.add_argument("--target-phi", type=float, default=30.0)
     ap.add_argument("--default-aspect-ratio", type=float, default=1.75)
     args = ap.parse_args()
-    from diffgns.simulators import Column, ColumnCase, load_gns
+    from diffgns.inverse.simulators import Column, ColumnCase, load_gns
 
     machine = machine_info()
     loaded = load_gns()

@@ -59,8 +59,8 @@ def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float)
     import jax
     import jax.numpy as jnp
 
-    from diffgns import objectives
-    from diffgns.simulators import Column, ColumnCase, gns_simulator
+    from diffgns.inverse import objectives
+    from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator
 
     warm_up_jax()
     col = Column(ColumnCase(aspect_ratio=aspect_ratio))

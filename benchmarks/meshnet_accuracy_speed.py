@@ -4,7 +4,7 @@ cost per simulated second, in one run.
     python benchmarks/meshnet_accuracy_speed.py --model models/meshnet_cylinder/model \
         --data data/cylinder_test.h5 --out benchmarks/results/meshnet_accuracy_speed.json
 
-Per trajectory (rollout from its first frame; see ``diffgns.graph.mesh_evaluate``): velocity
+Per trajectory (rollout from its first frame; see ``diffgns.mesh.evaluate``): velocity
 RMSE at 1, 50 and all frames, Strouhal number of the pressure lift against the CFD's, a
 rollout 3x as long checked for boundedness and periodicity, and the steady-state rollout time
 per simulated second (compile separate, median of --repeats) against the CFD's wall time per
@@ -25,10 +25,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS_DIR, write_json  # noqa: E402
 
-from diffgns.cfd.datagen import CylinderRun, time_case  # noqa: E402
-from diffgns.graph.mesh_evaluate import evaluate_trajectory, pressure_force_coefficients  # noqa
-from diffgns.graph.mesh_train import load_cylinder, load_model  # noqa: E402
-from diffgns.viz_mesh import animate_vorticity, plot_lift, vorticity  # noqa: E402
+from diffgns.mesh.datagen import CylinderRun, time_case  # noqa: E402
+from diffgns.mesh.evaluate import evaluate_trajectory, pressure_force_coefficients  # noqa
+from diffgns.mesh.figures import animate_vorticity, plot_lift, vorticity  # noqa: E402
+from diffgns.mesh.train import load_cylinder, load_model  # noqa: E402
 
 
 def main(argv=None) -> int:

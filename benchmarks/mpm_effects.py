@@ -27,10 +27,10 @@ import jax
 import jax.numpy as jnp
 from _common import RESULTS_DIR, machine_info, summary, timed, use_agg, warm_up_jax, write_json
 
-from diffgns.materials import Elastic, Fluid, Sand
 from diffgns.mpm import MPM
 from diffgns.scene import Body, BoxObstacle, Scene, Wall, Walls
-from diffgns.shapes import Rectangle
+from diffgns.scene.materials import Elastic, Fluid, Sand
+from diffgns.scene.shapes import Rectangle
 
 DX = 0.2 / 32
 DOMAIN = ((0.0, 1.0), (0.0, 0.5))

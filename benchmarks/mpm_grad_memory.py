@@ -83,7 +83,7 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
 
     from diffgns.metrics import runout
     from diffgns.mpm import MPM
-    from diffgns.scene_builders import column_collapse
+    from diffgns.scene.builders import column_collapse
 
     warm_up_jax()
     scene = column_collapse(**SCENE_KW)

@@ -28,7 +28,7 @@ from _common import (
 )
 
 from diffgns.mpm import MPM
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 # (cells across the column, frames per timed call); 4 particles per cell -> N = 4 c^2
 SIZES = ((23, 10), (45, 4), (90, 2))

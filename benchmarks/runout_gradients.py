@@ -19,7 +19,7 @@ from matplotlib.figure import Figure  # noqa: E402
 
 from diffgns import MPM  # noqa: E402
 from diffgns.metrics import runout  # noqa: E402
-from diffgns.scene_builders import column_collapse  # noqa: E402
+from diffgns.scene.builders import column_collapse  # noqa: E402
 
 OUT = Path(__file__).parent / "results"
 METHODS = {"max": {"method": "max"}, "percentile99": {"method": "percentile", "q": 99.0},

@@ -12,11 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.materials import Fluid
 from diffgns.mpm import MPM
 from diffgns.scene import Body, Scene, Walls
-from diffgns.scene_builders import column_collapse
-from diffgns.shapes import Rectangle
+from diffgns.scene.builders import column_collapse
+from diffgns.scene.materials import Fluid
+from diffgns.scene.shapes import Rectangle
 
 ROUNDS = 5
 

@@ -8,8 +8,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from diffgns import Body, BoxObstacle, Elastic, Fluid, Polygon, Rectangle, Sand, Scene, Wall, Walls
-from diffgns.scene_io import load_scene, save_scene
+from diffgns import (
+    Body,
+    BoxObstacle,
+    Elastic,
+    Fluid,
+    Polygon,
+    Rectangle,
+    Sand,
+    Scene,
+    Wall,
+    Walls,
+)
+from diffgns.scene.files import load_scene, save_scene
 
 
 def build() -> Scene:

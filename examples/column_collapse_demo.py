@@ -6,9 +6,9 @@ The README's main job until the inverse example lands (issue 3).
 """
 import argparse
 
+from diffgns.io.outputs import run_mpm, write_outputs
 from diffgns.metrics import lube_runout
-from diffgns.scene_builders import column_collapse
-from diffgns.simulate import run_mpm, write_outputs
+from diffgns.scene.builders import column_collapse
 
 
 def main():

@@ -28,8 +28,9 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns import inverse, objectives, viz
-from diffgns.simulators import (
+from diffgns import inverse
+from diffgns.inverse import objectives
+from diffgns.inverse.simulators import (
     DEFAULT_MODEL,
     Column,
     ColumnCase,
@@ -37,6 +38,7 @@ from diffgns.simulators import (
     hybrid_simulator,
     mpm_simulator,
 )
+from diffgns.io import figures as viz
 
 GNS_PHI_RANGE = (20.0, 45.0)  # friction angles of the shipped model's training data
 GNS_ASPECT_RANGE = (0.5, 3.0)

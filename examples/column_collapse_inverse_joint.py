@@ -32,10 +32,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns import inverse, objectives, viz
-from diffgns.inverse_lsq import least_squares
+from diffgns import inverse
+from diffgns.inverse import objectives
+from diffgns.inverse.lsq import least_squares
+from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator, mpm_simulator
+from diffgns.io import figures as viz
 from diffgns.metrics import deposit_profile, runout
-from diffgns.simulators import Column, ColumnCase, gns_simulator, mpm_simulator
 
 SCALES = {"friction_angle": 5.0, "aspect_ratio": 0.25, "floor_mu": 0.1}
 DEFAULTS = {"aspect_ratio": (1.75, 2.0), "floor_mu": (0.5, 0.3)}  # (target, start)

@@ -5,8 +5,12 @@ import h5py
 import numpy as np
 import pytest
 
-from diffgns.cfd.analysis import shedding_metrics, shedding_onset
-from diffgns.cfd.datagen import (
+from diffgns.cli import main
+from diffgns.errors import UnstableError
+from diffgns.io.dataset import read_metadata
+from diffgns.mesh.analysis import shedding_metrics, shedding_onset
+from diffgns.mesh.cfd import FlowParams, ProjectionSolver, run_case
+from diffgns.mesh.datagen import (
     CylinderRun,
     CylinderSampling,
     case_setup,
@@ -14,13 +18,9 @@ from diffgns.cfd.datagen import (
     sample_case,
     time_case,
 )
-from diffgns.cfd.dataset import iter_cylinder_dataset
-from diffgns.cfd.fem import assemble
-from diffgns.cfd.mesh import FLUID, INFLOW, OUTFLOW, WALL, ChannelGeometry, build_mesh
-from diffgns.cfd.solver import FlowParams, ProjectionSolver, run_case
-from diffgns.cli import main
-from diffgns.dataset import read_metadata
-from diffgns.errors import UnstableError
+from diffgns.mesh.dataset import iter_cylinder_dataset
+from diffgns.mesh.fem import assemble
+from diffgns.mesh.geometry import FLUID, INFLOW, OUTFLOW, WALL, ChannelGeometry, build_mesh
 
 H, L = 0.41, 2.2
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from diffgns.cli import main
-from diffgns.dataset import load_dataset, read_metadata
+from diffgns.io.dataset import load_dataset, read_metadata
 
 
 def test_simulate_column_writes_outputs(tmp_path):

@@ -6,7 +6,7 @@ import pytest
 
 from diffgns import MPM
 from diffgns.metrics import deposit_front, lube_runout
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 WIDTH = 0.1
 

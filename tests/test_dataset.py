@@ -1,4 +1,4 @@
-"""Tests of diffgns.dataset: HDF5 layout, resume, metadata statistics, GNS npz import."""
+"""Tests of diffgns.io.dataset: HDF5 layout, resume, metadata statistics, GNS npz import."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.dataset import (
+from diffgns.io.dataset import (
     DatasetWriter,
     finite_difference_velocity,
     iter_dataset,

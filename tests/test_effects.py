@@ -2,7 +2,18 @@
 import jax
 import pytest
 
-from diffgns import MPM, Body, BoxObstacle, Elastic, Fluid, Rectangle, Sand, Scene, Wall, Walls
+from diffgns import (
+    MPM,
+    Body,
+    BoxObstacle,
+    Elastic,
+    Fluid,
+    Rectangle,
+    Sand,
+    Scene,
+    Wall,
+    Walls,
+)
 
 
 def _scene(material, walls=Walls(), obstacles=(), gravity=(0.0, -9.81)):

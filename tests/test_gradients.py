@@ -11,7 +11,7 @@ from diffgns.mpm import boundaries, constitutive
 from diffgns.mpm import linalg as la
 from diffgns.mpm.shape import bspline_weights, stencil
 from diffgns.mpm.transfer import g2p, grid_velocity, p2g
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 
 def test_kernel_gradients(x64):

@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.dataset import write_gns_npz
 from diffgns.graph.data import WindowSampler, coarse_grain, load_trajectories
 from diffgns.graph.features import Normalizers, random_walk_noise
 from diffgns.graph.gns import GNS, GNSConfig
@@ -24,6 +23,7 @@ from diffgns.graph.training import (
     step_with_reallocation,
     window_loss,
 )
+from diffgns.io.dataset import write_gns_npz
 from diffgns.trajectory import SAND, Trajectory
 
 BOUNDS = ((0.0, 1.0), (0.0, 1.0))

@@ -8,10 +8,10 @@ import pytest
 
 from diffgns import MPM
 from diffgns.graph.train_loop import load_model
-from diffgns.hybrid import GNS_MODE, MPM_MODE, Hybrid, Schedule
-from diffgns.hybrid_handoff import lsq_gradient, node_means, particles_from_nodes
+from diffgns.hybrid.handoff import lsq_gradient, node_means, particles_from_nodes
+from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, Schedule
 from diffgns.metrics import runout
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 MODEL = "models/gns_columns"
 
@@ -213,7 +213,7 @@ def test_grad_through_hybrid_matches_finite_differences(model, x64):
 
 
 def test_node_factor_keeps_the_trained_node_spacing():
-    from diffgns.hybrid_compare import node_factor
+    from diffgns.hybrid.compare import node_factor
 
     info = {"factor": 16, "source": {"cells_across": 16}}
     assert node_factor(info, 16) == 16

@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns import MPM, inverse, objectives
-from diffgns.scene_builders import column_collapse
+from diffgns import MPM, inverse
+from diffgns.inverse import objectives
+from diffgns.scene.builders import column_collapse
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -105,7 +106,7 @@ def test_finite_difference_option_and_gradient_check_match_ad():
 
 
 def test_levenberg_marquardt_solves_two_residuals_and_rejects_bad_steps():
-    from diffgns.inverse_lsq import least_squares
+    from diffgns.inverse.lsq import least_squares
 
     def residuals(th):  # root at phi = 30, a = 1.75; strongly nonlinear in phi
         p, a = th["friction_angle"], th["aspect_ratio"]

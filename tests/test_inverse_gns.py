@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns import objectives
 from diffgns.graph.features import Normalizers
 from diffgns.graph.gns import GNS, GNSConfig
-from diffgns.simulators import (
+from diffgns.inverse import objectives
+from diffgns.inverse.simulators import (
     Column,
     ColumnCase,
     GNSSimulator,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from diffgns.graph.features import Normalizer
-from diffgns.graph.meshnet import (
+from diffgns.mesh.meshnet import (
     FLUID,
     INFLOW,
     OUTFLOW,
@@ -107,7 +107,7 @@ def test_invalid_config_rejected():
 
 def _synthetic_dataset(path, n_traj=2, frames=12):
     """A travelling wave on the grid mesh, written with the CFD dataset writer."""
-    from diffgns.cfd.dataset import CylinderDatasetWriter
+    from diffgns.mesh.dataset import CylinderDatasetWriter
 
     pos, cells, types = _grid_mesh()
     with CylinderDatasetWriter(path) as w:
@@ -128,8 +128,8 @@ def _synthetic_dataset(path, n_traj=2, frames=12):
 
 
 def test_training_on_a_dataset_learns_and_resumes_exactly(tmp_path):
-    from diffgns.graph import mesh_train
     from diffgns.graph.training import TrainConfig
+    from diffgns.mesh import train as mesh_train
 
     _synthetic_dataset(tmp_path / "d.h5")
     cfg = MeshNetConfig(latent=16, mp_steps=2, noise_std=0.002)
@@ -153,7 +153,7 @@ def test_training_on_a_dataset_learns_and_resumes_exactly(tmp_path):
 
 
 def test_vorticity_of_solid_rotation_and_shear():
-    from diffgns.viz_mesh import vorticity
+    from diffgns.mesh.figures import vorticity
 
     pos, cells, _ = _grid_mesh()
     omega = 3.0
@@ -164,8 +164,8 @@ def test_vorticity_of_solid_rotation_and_shear():
 
 
 def test_push_forward_unrolls_the_model_without_gradient(tmp_path):
-    from diffgns.graph import mesh_train
     from diffgns.graph.training import TrainConfig
+    from diffgns.mesh import train as mesh_train
 
     pos, cells, types = _grid_mesh()
     g = pad_mesh(pos, cells, types, 32, 128, NU)
@@ -218,8 +218,8 @@ def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_pat
     configuration that differs otherwise is rejected; old model.json files load."""
     import json
 
-    from diffgns.graph import mesh_train
     from diffgns.graph.training import TrainConfig
+    from diffgns.mesh import train as mesh_train
 
     _synthetic_dataset(tmp_path / "d.h5")
     old_cfg = MeshNetConfig(latent=16, mp_steps=2, noise_std=0.002, viscosity_feature=False)

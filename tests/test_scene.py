@@ -23,8 +23,8 @@ from diffgns import (
     Wall,
     Walls,
 )
-from diffgns.scene_builders import column_collapse, granular_squares
-from diffgns.scene_io import load_scene, save_scene, scene_from_dict, scene_to_dict
+from diffgns.scene.builders import column_collapse, granular_squares
+from diffgns.scene.files import load_scene, save_scene, scene_from_dict, scene_to_dict
 
 SCENE_DIR = Path(__file__).resolve().parents[1] / "scenes"
 SCENES = sorted(SCENE_DIR.glob("*.toml"))

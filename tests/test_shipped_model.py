@@ -11,7 +11,7 @@ import pytest
 from diffgns import MPM
 from diffgns.graph.data import coarse_grain
 from diffgns.graph.train_loop import load_model
-from diffgns.scene_builders import column_collapse
+from diffgns.scene.builders import column_collapse
 
 MODELS = sorted(p.parent for p in Path("models").glob("*/config.json")
                 if json.loads(p.read_text()).get("gns"))

@@ -1,4 +1,4 @@
-"""Tests of diffgns.viz: GIF animation, static plots and VTK output."""
+"""Tests of diffgns.io.figures: GIF animation, static plots and VTK output."""
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from diffgns import viz
+from diffgns.io import figures as viz
 from diffgns.trajectory import FLUID, KINEMATIC, SAND, Trajectory
 
 DT = 0.0025

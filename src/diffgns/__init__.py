@@ -1,10 +1,10 @@
 """diffgns: differentiable particle and fluid simulation in JAX (MPM, GNS, hybrid)."""
-from .errors import SceneError, UnstableError
-from .materials import Elastic, Fluid, Sand
-from .mpm import MPM, MPMParams, MPMState
-from .scene import Body, BoxObstacle, Scene, Wall, Walls
-from .shapes import Polygon, Rectangle
-from .trajectory import Trajectory
+from diffgns.errors import SceneError, UnstableError
+from diffgns.mpm import MPM, MPMParams, MPMState
+from diffgns.scene import Body, BoxObstacle, Scene, Wall, Walls
+from diffgns.scene.materials import Elastic, Fluid, Sand
+from diffgns.scene.shapes import Polygon, Rectangle
+from diffgns.trajectory import Trajectory
 
 __version__ = "0.1.0"
 

@@ -1,5 +1,5 @@
 """Learned simulators on graphs: neighbour lists, features, networks and the particle GNS."""
-from .features import (
+from diffgns.graph.features import (
     Normalizer,
     Normalizers,
     edge_features,
@@ -7,9 +7,9 @@ from .features import (
     random_walk_noise,
     target_acceleration,
 )
-from .gns import GNS, GNSConfig
-from .neighbors import NeighborBuilder, did_overflow, edges, update_or_reallocate
-from .networks import MLP, EncodeProcessDecode, init_params
+from diffgns.graph.gns import GNS, GNSConfig
+from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges, update_or_reallocate
+from diffgns.graph.networks import MLP, EncodeProcessDecode, init_params
 
 __all__ = [
     "GNS", "GNSConfig", "MLP", "EncodeProcessDecode", "NeighborBuilder", "Normalizer",

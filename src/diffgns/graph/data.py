@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import compute_statistics, iter_dataset, load_gns_npz, read_metadata
-from ..trajectory import Trajectory
+from diffgns.io.dataset import compute_statistics, iter_dataset, load_gns_npz, read_metadata
+from diffgns.trajectory import Trajectory
 
 
 def coarse_grain_map(x0: np.ndarray, factor: int) -> np.ndarray:

@@ -13,9 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import metrics
-from ..trajectory import Trajectory
-from .gns import GNS
+from diffgns import metrics
+from diffgns.graph.gns import GNS
+from diffgns.trajectory import Trajectory
 
 HORIZONS = (1, 10, 50, 100)
 

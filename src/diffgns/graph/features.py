@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from ..trajectory import KINEMATIC
+from diffgns.trajectory import KINEMATIC
 
 __all__ = [
     "Normalizer", "Normalizers", "combine_std", "edge_features", "node_features",

@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..trajectory import KINEMATIC, Trajectory
-from .features import Normalizers, edge_features, node_features
-from .neighbors import NeighborBuilder, did_overflow, edges
-from .networks import EncodeProcessDecode, init_params
+from diffgns.graph.features import Normalizers, edge_features, node_features
+from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
+from diffgns.graph.networks import EncodeProcessDecode, init_params
+from diffgns.trajectory import KINEMATIC, Trajectory
 
 __all__ = ["GNS", "GNSConfig"]
 

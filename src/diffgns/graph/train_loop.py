@@ -18,11 +18,11 @@ import numpy as np
 from flax import serialization
 from tqdm import tqdm
 
-from .data import WindowSampler, frame_statistics, load_trajectories
-from .evaluate import evaluate
-from .features import Normalizers
-from .gns import GNS, GNSConfig
-from .training import (
+from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
+from diffgns.graph.evaluate import evaluate
+from diffgns.graph.features import Normalizers
+from diffgns.graph.gns import GNS, GNSConfig
+from diffgns.graph.training import (
     TrainConfig,
     Trainer,
     load_checkpoint,

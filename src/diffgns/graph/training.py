@@ -22,10 +22,10 @@ from flax import serialization
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
-from ..trajectory import KINEMATIC
-from .features import random_walk_noise, target_acceleration
-from .gns import GNS
-from .neighbors import did_overflow, edges
+from diffgns.graph.features import random_walk_noise, target_acceleration
+from diffgns.graph.gns import GNS
+from diffgns.graph.neighbors import did_overflow, edges
+from diffgns.trajectory import KINEMATIC
 
 
 @dataclasses.dataclass(frozen=True)

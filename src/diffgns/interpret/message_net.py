@@ -27,8 +27,14 @@ import numpy as np
 import optax
 from flax import serialization
 
-from ..graph.networks import MLP
-from ..graph.training import TrainConfig, fit_loop, load_checkpoint, make_optimizer, step_rng
+from diffgns.graph.networks import MLP
+from diffgns.graph.training import (
+    TrainConfig,
+    fit_loop,
+    load_checkpoint,
+    make_optimizer,
+    step_rng,
+)
 
 
 @dataclasses.dataclass(frozen=True)

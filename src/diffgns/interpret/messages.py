@@ -18,8 +18,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from .message_net import forward
-from .nbody_data import EDGE_FEATURES
+from diffgns.interpret.message_net import forward
+from diffgns.interpret.nbody_data import EDGE_FEATURES
 
 
 def edge_messages(net, norm, params, samples: dict, max_edges: int | None = None,

@@ -1,6 +1,6 @@
 """n-body datasets on disk and as edge samples.
 
-Trajectories are stored with the project's HDF5 layout (:class:`diffgns.dataset.DatasetWriter`):
+Trajectories are stored with the project's HDF5 layout (:class:`diffgns.io.dataset.DatasetWriter`):
 ``position``/``velocity`` (T, N, 2), with per-trajectory attributes ``mass`` (N,) kg and
 ``radius`` (N,) m, and the system's :class:`NBodyConfig` in the metadata (``nbody``).
 
@@ -23,9 +23,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from ..dataset import DatasetWriter, read_metadata
-from ..trajectory import Trajectory
-from .nbody import NBodyConfig, initial_state, pair_forces, pair_geometry, rollout
+from diffgns.interpret.nbody import (
+    NBodyConfig,
+    initial_state,
+    pair_forces,
+    pair_geometry,
+    rollout,
+)
+from diffgns.io.dataset import DatasetWriter, read_metadata
+from diffgns.trajectory import Trajectory
 
 EDGE_FEATURES = ("dx", "dy", "d", "dvx", "dvy", "m_i", "m_j", "r_i", "r_j")
 EDGE_UNITS = {"dx": "m", "dy": "m", "d": "m", "dvx": "m/s", "dvy": "m/s", "m_i": "kg",

@@ -44,10 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..graph.training import TrainConfig
-from . import message_net, messages, nbody_data, symbolic
-from .nbody import NBodyConfig
-from .nbody_data import EDGE_UNITS
+from diffgns.graph.training import TrainConfig
+from diffgns.interpret import message_net, messages, nbody_data, symbolic
+from diffgns.interpret.nbody import NBodyConfig
+from diffgns.interpret.nbody_data import EDGE_UNITS
 
 SYSTEMS = {
     "spring": NBodyConfig(),

@@ -41,7 +41,7 @@ import time
 import numpy as np
 import sympy
 
-from . import units as _units
+from diffgns.interpret import units as _units
 
 OPERATORS = "add,sub,mul,div,fmin,fmax,pow,exp,log,constant,variable"
 _HEAVY = ("Pow", "Exp", "Log")

@@ -1,5 +1,5 @@
 """Pure-JAX explicit MLS-MPM."""
-from .solver import MPM
-from .state import MPMParams, MPMState
+from diffgns.mpm.solver import MPM
+from diffgns.mpm.state import MPMParams, MPMState
 
 __all__ = ["MPM", "MPMParams", "MPMState"]

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import linalg as la
+from diffgns.mpm import linalg as la
 
 
 def _normal_bc(vx, vy, nx, ny, kind: str, mu=None):

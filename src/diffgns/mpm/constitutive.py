@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from . import linalg as la
+from diffgns.mpm import linalg as la
 
 
 def lame(E, nu):

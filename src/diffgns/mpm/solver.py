@@ -16,14 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import UnstableError
-from ..materials import Fluid, Sand
-from ..trajectory import ELASTIC, FLUID, SAND, Trajectory
-from . import boundaries, constitutive
-from . import linalg as la
-from .shape import stencil
-from .state import MPMParams, MPMState
-from .transfer import g2p, grid_velocity, p2g
+from diffgns.errors import UnstableError
+from diffgns.mpm import boundaries, constitutive
+from diffgns.mpm import linalg as la
+from diffgns.mpm.shape import stencil
+from diffgns.mpm.state import MPMParams, MPMState
+from diffgns.mpm.transfer import g2p, grid_velocity, p2g
+from diffgns.scene.materials import Fluid, Sand
+from diffgns.trajectory import ELASTIC, FLUID, SAND, Trajectory
 
 
 class MPM:

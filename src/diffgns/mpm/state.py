@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from ..materials import Elastic, Fluid, Sand
+from diffgns.scene.materials import Elastic, Fluid, Sand
 
 
 @struct.dataclass

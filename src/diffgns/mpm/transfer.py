@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .linalg import safe_div
+from diffgns.mpm.linalg import safe_div
 
 
 def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):

@@ -1,0 +1,410 @@
+"""Inverse problems: gradient-based parameter identification through any rollout.
+
+An inverse problem is ``optax`` on ``jax.grad(loss(simulator(theta)))``. ``theta`` is a dict
+of named physical scalars (e.g. ``{"friction_angle": 45.0}``); a simulator is any function
+``theta -> positions (T, N, 2)`` (see :mod:`diffgns.inverse.simulators`) and an objective
+any function ``positions -> scalar`` (see :mod:`diffgns.inverse.objectives`). This module supplies
+
+* parameter transforms that keep physical bounds (:class:`Bounded`: the optimiser works on an
+  unconstrained ``u`` and ``theta = lo + (hi - lo) sigmoid(u)`` can never leave ``(lo, hi)``);
+* :func:`optimize`: the optax loop (ahead-of-time compiled gradient, XLA memory analysis,
+  a stopping rule, progress callback, a history record per iteration with parameters, loss,
+  gradient, time and memory) with exact (AD) or finite-difference gradients;
+* :func:`make_optimizer`, including ``"gauss-newton"``: for a loss that is one squared residual
+  ``r(u)^2`` the step ``-2 L / |g|^2 g`` is exactly the Newton step ``-r / r'`` on ``r``;
+* :func:`gradient_check`: AD against finite differences (values, times, fine slope scan);
+* the MPM parameter plumbing (:func:`apply_theta`) and :func:`frames_to_rest`.
+
+Levenberg-Marquardt on residual vectors (forward-mode Jacobians) is in
+:mod:`diffgns.inverse.lsq`.
+"""
+from __future__ import annotations
+
+import math
+import resource
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB (ru_maxrss is KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def current_rss_mb() -> float:
+    """Resident memory of this process now, MB (Linux /proc; 0 where unavailable)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:  # pragma: no cover - non-Linux
+        return 0.0
+
+
+# ------------------------------------------------------------------------ transforms
+@dataclass(frozen=True)
+class Bounded:
+    """Physical parameter in the open interval ``(lo, hi)``: ``x = lo + (hi - lo) sigmoid(u)``.
+
+    ``FRICTION_ANGLE = Bounded(0, 90)`` (degrees). ``u`` is clipped to +-15 first, so even in
+    float32 every ``u`` maps strictly inside (within ~3e-7 of the range of either bound).
+    """
+
+    lo: float
+    hi: float
+
+    def forward(self, u):
+        return self.lo + (self.hi - self.lo) * jax.nn.sigmoid(jnp.clip(u, -15.0, 15.0))
+
+    def inverse(self, x, name: str = "parameter"):
+        x = float(x)
+        if not (self.lo < x < self.hi) or not math.isfinite(x):
+            raise ValueError(f"{name} = {x:g} is outside its physical range ({self.lo:g}, "
+                             f"{self.hi:g}); start from a value strictly inside it")
+        p = (x - self.lo) / (self.hi - self.lo)
+        return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Unbounded parameter (optimised as it is)."""
+
+    def forward(self, u):
+        return u
+
+    def inverse(self, x, name: str = "parameter"):
+        if not math.isfinite(float(x)):
+            raise ValueError(f"{name} = {x} is not finite")
+        return float(x)
+
+
+FRICTION_ANGLE = Bounded(0.0, 90.0)
+#: transforms used when a parameter's name is given without one
+DEFAULT_TRANSFORMS = {"friction_angle": FRICTION_ANGLE, "floor_mu": Bounded(0.0, 2.0),
+                      "wall_mu": Bounded(0.0, 2.0), "aspect_ratio": Bounded(0.25, 4.0)}
+
+
+# ------------------------------------------------------------------------ optimisation
+@dataclass
+class InverseResult:
+    """Outcome of :func:`optimize`: final parameters and one record per iteration.
+
+    ``compile_s`` is the ahead-of-time compile time of the gradient program and ``xla_memory``
+    its XLA memory analysis (bytes: temp, argument, output); ``aux`` the auxiliary output of
+    the last evaluation (e.g. the fitted positions) when the loss has one.
+    """
+
+    theta: dict
+    history: list = field(default_factory=list)
+    converged: bool = False
+    stop_reason: str = ""
+    wall_time_s: float = 0.0
+    compile_s: float = 0.0
+    xla_memory: dict = field(default_factory=dict)
+    aux: object = None
+
+    def series(self, key: str, name: str | None = None) -> np.ndarray:
+        """History of ``key`` ("loss", "time_s", ...) or of parameter ``name`` under "theta"."""
+        if name is None:
+            return np.array([h[key] for h in self.history])
+        return np.array([h[key][name] for h in self.history])
+
+
+def gauss_newton_step(scale: float = 1.0, max_step: float = 1.0
+                      ) -> optax.GradientTransformationExtraArgs:
+    """Update ``-scale * 2 L / |g|^2 * g`` (``value=L`` passed to ``update``), each component
+    clipped to ``max_step``. For ``L = r^2`` with one residual this is the Newton step
+    ``-r / r'`` on ``r``; for a sum of squares it is Polyak's step with ``f* = 0`` doubled."""
+
+    def update(updates, state, params=None, *, value, **extra):
+        del params, extra
+        g2 = sum(jnp.sum(g * g) for g in jax.tree.leaves(updates))
+        lr = jnp.where(g2 > 0, 2.0 * scale * value / jnp.where(g2 > 0, g2, 1.0), 0.0)
+        return jax.tree.map(lambda g: jnp.clip(-lr * g, -max_step, max_step), updates), state
+
+    return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update)
+
+
+def make_optimizer(name: str, learning_rate: float = 1.0, decay: float = 1.0,
+                   max_step: float = 1.0) -> optax.GradientTransformationExtraArgs:
+    """``"adam"``/``"sgd"`` (exponential learning-rate decay per iteration) or
+    ``"gauss-newton"`` (:func:`gauss_newton_step` scaled by ``learning_rate``, updates
+    clipped to ``max_step`` in optimiser units, e.g. the transformed ``u``). All accept the
+    loss ``value=`` extra argument of :func:`optimize`."""
+    if name == "gauss-newton":
+        return gauss_newton_step(learning_rate, max_step)
+    sched = optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay)
+    if name == "adam":
+        return optax.with_extra_args_support(optax.adam(sched))
+    if name == "sgd":
+        return optax.with_extra_args_support(optax.sgd(sched))
+    raise ValueError(f"optimizer {name!r} is unknown; use 'gauss-newton', 'adam' or 'sgd'")
+
+
+def memory_stats(compiled) -> dict:
+    """XLA memory analysis of a compiled executable (bytes: temp, argument, output, alias)."""
+    m = compiled.memory_analysis()
+    keys = ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes",
+            "alias_size_in_bytes")
+    return {k: int(getattr(m, k)) for k in keys if m is not None and hasattr(m, k)}
+
+
+def setup(theta0: dict, transforms: dict | None):
+    """(transforms by name, initial u, u -> theta) for physical ``theta0``; validates it."""
+    tf = {k: (transforms or {}).get(k, DEFAULT_TRANSFORMS.get(k, Identity())) for k in theta0}
+    dtype = jnp.result_type(float)
+    u = {k: jnp.asarray(tf[k].inverse(v, k), dtype) for k, v in theta0.items()}
+    return tf, u, lambda u: {k: tf[k].forward(v) for k, v in u.items()}
+
+
+def evaluate_redo(evaluate: Callable, rebuild: Callable, on_overflow, to_theta, u, it: int):
+    """``evaluate(u) -> (loss, aux, ...)``; on aux["overflow"], ``on_overflow(theta)``,
+    ``rebuild()`` and redo (twice at most)."""
+    for attempt in range(3):
+        out = evaluate(u)
+        aux = out[1]
+        if not (isinstance(aux, dict) and bool(aux.get("overflow", False))):
+            return out
+        if on_overflow is None or attempt == 2:
+            raise RuntimeError(f"neighbour list overflow at iteration {it} persists; raise "
+                               "the simulator's neighbour capacity")
+        on_overflow(to_theta(u))
+        rebuild()
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def record(it: int, tf: dict, u: dict, loss, g_u: dict, aux, t0: float, t_start: float
+           ) -> dict:
+    """One history record (physical theta and gradient, time, memory, scalar aux)."""
+    loss = float(jax.block_until_ready(loss))
+    theta = {k: float(tf[k].forward(v)) for k, v in u.items()}
+    dth = {k: float(jax.grad(tf[k].forward)(u[k])) for k in u}
+    rec = dict(iteration=it, theta=theta, loss=loss,
+               grad={k: float(g_u[k]) / dth[k] if dth[k] else math.nan for k in u},
+               grad_u={k: float(v) for k, v in g_u.items()},
+               time_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - t_start,
+               rss_mb=current_rss_mb(), peak_rss_mb=peak_rss_mb(),
+               aux={k: float(v) for k, v in (aux or {}).items() if np.ndim(v) == 0})
+    if not np.isfinite(loss) or not all(np.isfinite(v) for v in rec["grad_u"].values()):
+        raise FloatingPointError(f"non-finite loss or gradient at iteration {it}: {rec}")
+    return rec
+
+
+def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransformation,
+             max_iter: int = 20, transforms: dict | None = None, loss_tol: float = 0.0,
+             step_tol: float | dict = 0.0, gradient: str = "ad", fd_rel_step: float = 1e-3,
+             has_aux: bool = False, on_overflow: Callable | None = None,
+             callback: Callable[[dict], None] | None = None) -> InverseResult:
+    """Minimise ``loss_fn(theta)`` with ``optimizer`` over transformed parameters.
+
+    Args:
+        loss_fn: theta (dict of scalars, physical units) -> scalar loss, or (loss, aux) with
+            ``has_aux``; aux is a dict whose scalar entries are recorded per iteration and
+            whose ``"overflow"`` entry, if true, triggers ``on_overflow``.
+        theta0: initial physical parameters; each must lie inside its transform's range.
+        transforms: {name: Bounded/Identity}; default :data:`DEFAULT_TRANSFORMS` by name,
+            Identity otherwise.
+        loss_tol: stop when the loss is at or below this.
+        step_tol: stop when every proposed step (physical units; a float or a dict by name)
+            is smaller than this; the final theta is then the last evaluated one.
+        gradient: "ad" (value_and_grad, compiled ahead of time) or "fd" (central finite
+            differences of the compiled loss, relative step ``fd_rel_step``).
+        on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
+            a neighbour list); the iteration is then recompiled and redone (twice at most).
+        callback: called with each history record (e.g. to print progress).
+    Returns:
+        InverseResult; history records: iteration, theta, loss, grad (d loss / d theta,
+        physical), grad_u (optimiser space), time_s, elapsed_s, rss_mb, peak_rss_mb, aux.
+    Raises:
+        ValueError for an invalid start or option; FloatingPointError on a non-finite loss.
+    """
+    if gradient not in ("ad", "fd"):
+        raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
+    if max_iter < 0:
+        raise ValueError(f"max_iter must be >= 0, got {max_iter}")
+    tf, u, to_theta = setup(theta0, transforms)
+    dtype = jnp.result_type(float)
+    full = loss_fn if has_aux else (lambda th: (loss_fn(th), {}))
+    t_start = time.perf_counter()
+    result = InverseResult(theta=dict(theta0))
+
+    exe = None
+
+    def build():
+        nonlocal exe
+        f = lambda uu: full(to_theta(uu))
+        fn = jax.value_and_grad(f, has_aux=True) if gradient == "ad" else f
+        t0 = time.perf_counter()
+        exe = jax.jit(fn).lower(u).compile()
+        result.compile_s += time.perf_counter() - t0
+        result.xla_memory = memory_stats(exe)
+
+    def evaluate(u):
+        if gradient == "ad":
+            (loss, aux), g_u = exe(u)
+            return loss, aux, g_u
+        loss, aux = exe(u)
+        theta = to_theta(u)
+        g_u = {}
+        for k in u:  # central differences in physical units, chained to u
+            h = fd_rel_step * max(abs(float(theta[k])), 1e-3)
+            vals = [exe(dict(u, **{k: jnp.asarray(tf[k].inverse(float(theta[k]) + s, k),
+                                                  dtype)}))[0] for s in (h, -h)]
+            dtheta_du = jax.grad(tf[k].forward)(u[k])
+            g_u[k] = (vals[0] - vals[1]) / (2 * h) * dtheta_du
+        return loss, aux, g_u
+
+    build()
+    state = optimizer.init(u)
+    tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
+    for it in range(max_iter + 1):
+        t0 = time.perf_counter()
+        loss, aux, g_u = evaluate_redo(evaluate, build, on_overflow, to_theta, u, it)
+        rec = record(it, tf, u, loss, g_u, aux, t0, t_start)
+        loss, theta = rec["loss"], rec["theta"]
+        result.history.append(rec)
+        result.theta, result.aux = theta, aux
+        if callback:
+            callback(rec)
+        if loss <= loss_tol:
+            result.converged, result.stop_reason = True, f"loss <= {loss_tol:g}"
+            break
+        if it == max_iter:
+            result.stop_reason = f"max_iter = {max_iter}"
+            break
+        updates, state = optimizer.update(g_u, state, u, value=jnp.asarray(loss))
+        new = optax.apply_updates(u, updates)
+        step = {k: abs(float(tf[k].forward(new[k])) - theta[k]) for k in u}
+        if all(step[k] < tol.get(k, 0.0) for k in u):
+            result.converged = True
+            result.stop_reason = "step < step_tol"
+            break
+        u = new
+    result.wall_time_s = time.perf_counter() - t_start
+    return result
+
+
+def finite_difference_grad(loss_fn: Callable[[dict], jax.Array], theta: dict,
+                           rel_step: float = 1e-4) -> dict:
+    """Central finite-difference gradient of ``loss_fn`` at ``theta`` (one pair of runs per
+    parameter, step ``rel_step * max(|theta_k|, 1)``), for comparison with the AD gradient."""
+    f = jax.jit(loss_fn)
+    out = {}
+    for k, v in theta.items():
+        h = rel_step * max(abs(float(v)), 1.0)
+        up = dict(theta, **{k: jnp.asarray(float(v) + h)})
+        dn = dict(theta, **{k: jnp.asarray(float(v) - h)})
+        out[k] = float((f(up) - f(dn)) / (2 * h))
+    return out
+
+
+def gradient_check(loss_fn: Callable[[dict], jax.Array], theta: dict,
+                   rel_steps=(1e-2, 1e-3, 1e-4), repeats: int = 3, scan: int = 0) -> dict:
+    """AD gradient against central finite differences at ``theta``: values and times.
+
+    Both programs are compiled ahead of time (``compile_s``); times are medians of
+    ``repeats`` steady calls (s). A finite-difference gradient costs 2 forward runs per
+    parameter and step; ``rel_diff[step][k] = |fd - ad| / |ad|``. With ``scan`` > 0 the loss
+    is also evaluated at ``theta_k + j h`` (j = -scan..scan, h = the smallest relative step)
+    and the one-sided slopes of the 2 scan intervals are summarised (``slopes[k]``: median,
+    and the fraction within 2 % of AD): a piecewise-smooth loss (e.g. a rollout whose radius
+    graph changes) shows as a few outlying slopes while most match AD.
+    """
+    th = {k: jnp.asarray(v, jnp.result_type(float)) for k, v in theta.items()}
+    out = {"theta": {k: float(v) for k, v in theta.items()}}
+    progs = {}
+    for name, fn in (("forward", loss_fn), ("gradient", jax.grad(loss_fn))):
+        t0 = time.perf_counter()
+        progs[name] = jax.jit(fn).lower(th).compile()
+        out[f"{name}_compile_s"] = time.perf_counter() - t0
+        out[f"{name}_xla_memory"] = memory_stats(progs[name])
+
+    def med(f):
+        jax.block_until_ready(f())
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            r = jax.block_until_ready(f())
+            ts.append(time.perf_counter() - t0)
+        return r, float(np.median(ts))
+
+    g, out["ad_time_s"] = med(lambda: progs["gradient"](th))
+    _, out["forward_time_s"] = med(lambda: progs["forward"](th))
+    out["ad"] = {k: float(v) for k, v in g.items()}
+    out["fd"], out["rel_diff"] = {}, {}
+    for rel in rel_steps:
+        fd = {}
+        for k, v in theta.items():
+            h = rel * max(abs(float(v)), 1e-3)
+            up, dn = (progs["forward"](dict(th, **{k: th[k] + s})) for s in (h, -h))
+            fd[k] = float((up - dn) / (2 * h))
+        out["fd"][f"{rel:g}"] = fd
+        out["rel_diff"][f"{rel:g}"] = {k: abs(fd[k] - out["ad"][k]) / max(abs(out["ad"][k]),
+                                                                        1e-300) for k in fd}
+    out["fd_time_s"] = 2 * len(theta) * out["forward_time_s"]
+    if scan:
+        out["slopes"] = {}
+        for k, v in theta.items():
+            h = min(rel_steps) * max(abs(float(v)), 1e-3)
+            vals = np.array([float(progs["forward"](dict(th, **{k: th[k] + j * h})))
+                             for j in range(-scan, scan + 1)])
+            sl = np.diff(vals) / h
+            ad = out["ad"][k]
+            out["slopes"][k] = dict(step=h, median=float(np.median(sl)),
+                                    median_rel_diff=float(abs(np.median(sl) - ad) / abs(ad)),
+                                    within_2pct=float(np.mean(np.abs(sl - ad) <= 0.02 * abs(ad))),
+                                    values=sl.tolist())
+    return out
+
+
+# ------------------------------------------------------------------------ MPM plumbing
+def apply_theta(params, theta: dict):
+    """Write named physical parameters into an MPMParams pytree (differentiably).
+
+    Names: friction_angle, E, nu, rho, cohesion (all bodies), floor_mu (bottom wall),
+    wall_mu (all four walls). Other names (e.g. aspect_ratio, handled by the simulator's
+    initial state) are ignored when listed in ``MPM_STATE_PARAMS``.
+    """
+    rep = {}
+    for k, v in theta.items():
+        v = jnp.asarray(v, params.E.dtype)
+        if k in ("friction_angle", "E", "nu", "rho", "cohesion"):
+            rep[k] = jnp.broadcast_to(v, getattr(params, k).shape)
+        elif k == "floor_mu":
+            rep["wall_mu"] = rep.get("wall_mu", params.wall_mu).at[2].set(v)
+        elif k == "wall_mu":
+            rep["wall_mu"] = jnp.broadcast_to(v, (4,))
+        elif k not in MPM_STATE_PARAMS:
+            raise ValueError(f"unknown parameter {k!r}; use friction_angle, E, nu, rho, "
+                             "cohesion, floor_mu, wall_mu or " + ", ".join(MPM_STATE_PARAMS))
+    return params.replace(**rep)
+
+
+#: parameters that enter through the initial state rather than MPMParams
+MPM_STATE_PARAMS = ("aspect_ratio",)
+
+
+def mpm_final_positions(sim, state, n_frames: int, block: int = 25):
+    """theta -> (N, 2) final positions of an MPM rollout, checkpointed for gradients."""
+    base = sim.params()
+
+    def final(theta):
+        pos, _, _, _ = sim.rollout_full(apply_theta(base, theta), state, n_frames=n_frames,
+                                        checkpoint=True, block=block)
+        return pos[-1]
+
+    return final
+
+
+def frames_to_rest(speed, threshold: float = 0.02, margin: int = 10, multiple: int = 25) -> int:
+    """Frames until the per-frame max speed (m/s) stays below ``threshold``, plus a margin,
+    rounded up to a multiple of ``multiple``."""
+    speed = np.asarray(speed)
+    moving = np.flatnonzero(speed >= threshold)
+    n = (moving[-1] + 1 if len(moving) else 0) + margin
+    return int(-(-n // multiple) * multiple)

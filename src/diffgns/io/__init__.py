@@ -1,0 +1,1 @@
+"""Input/output: HDF5 datasets, dataset generation, figures and animations, run outputs."""

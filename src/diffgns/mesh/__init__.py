@@ -1,0 +1,2 @@
+"""Fluids on meshes: the CFD ground truth (geometry, FEM, solver, datasets) and the
+MeshGraphNet (model, training, evaluation, figures)."""

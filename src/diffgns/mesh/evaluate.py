@@ -1,0 +1,115 @@
+"""Held-out evaluation of a MeshGraphNet against the CFD: errors, shedding, stability, cost.
+
+For one trajectory of F frames (:func:`evaluate_trajectory`):
+
+* velocity RMSE (m/s, over fluid and outflow nodes) of the rollout from frame 0 at horizons
+  1, 50 and F - 1 frames;
+* the Strouhal number ``St = f D / Ubar`` of the lift from the pressure on the cylinder
+  (:func:`pressure_force_coefficients`, the same integral for CFD and model fields), over
+  the whole compared horizon, and its relative error;
+* stability: a rollout ``long_factor`` times the horizon; its velocities stay finite and below
+  twice the CFD's largest speed, and it stays periodic (St over its last third within 5% of
+  St over its first third, peak-to-peak lift in the last third within a factor 2 of the
+  CFD's);
+* cost: steady-state rollout seconds per simulated second (compile excluded, median of
+  ``repeats``) against the CFD's wall seconds per simulated second stored with the data.
+"""
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+
+from diffgns.mesh.analysis import shedding_metrics
+from diffgns.mesh.meshnet import MeshNet
+from diffgns.mesh.train import graph_of
+
+
+def cylinder_sides(cells: np.ndarray, on_cylinder: np.ndarray) -> np.ndarray:
+    """(S, 2) vertex pairs of the mesh sides that lie on the cylinder (boundary sides)."""
+    sides = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
+    sides = np.sort(sides, axis=1)
+    uniq, count = np.unique(sides, axis=0, return_counts=True)
+    b = uniq[count == 1]
+    return b[on_cylinder[b[:, 0]] & on_cylinder[b[:, 1]]]
+
+
+def pressure_force_coefficients(traj: dict, pressure: np.ndarray) -> tuple[np.ndarray,
+                                                                            np.ndarray]:
+    """Pressure part of (cD, cL) per frame from vertex pressures (F, N) (kinematic, m^2/s^2).
+
+    ``F = -sum_sides p_mid n ds`` with n the unit normal pointing out of the cylinder;
+    ``c = 2 F / (Ubar^2 D)``.
+    """
+    a = traj["attrs"]
+    sides = cylinder_sides(traj["cells"], traj["on_cylinder"].astype(bool))
+    x = traj["mesh_pos"]
+    mid = 0.5 * (x[sides[:, 0]] + x[sides[:, 1]])
+    n = mid - np.asarray(a["center"])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ds = np.linalg.norm(x[sides[:, 0]] - x[sides[:, 1]], axis=1)
+    p_mid = 0.5 * (pressure[:, sides[:, 0]] + pressure[:, sides[:, 1]])
+    force = -np.einsum("fs,sd->fd", p_mid * ds, n)
+    u_bar, diameter = 2.0 * a["u_max"] / 3.0, 2.0 * a["radius"]
+    c = 2.0 * force / (u_bar**2 * diameter)
+    return c[:, 0], c[:, 1]
+
+
+def _shedding(traj: dict, pressure: np.ndarray, dt: float) -> dict:
+    cd, cl = pressure_force_coefficients(traj, pressure)
+    t = np.arange(len(cl)) * dt
+    a = traj["attrs"]
+    return shedding_metrics(t, cd, cl, 0.0, 2.0 * a["radius"], 2.0 * a["u_max"] / 3.0)
+
+
+def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor: int = 3,
+                        repeats: int = 3) -> dict:
+    """Metrics of one held-out trajectory (see the module docstring)."""
+    n = len(traj["mesh_pos"])
+    graph = graph_of(traj, padding)
+    model.check_graph(graph)
+    v0 = np.zeros((padding[0], 2), np.float32)
+    v0[:n] = traj["velocity"][0]
+    F = len(traj["velocity"])
+    dt = float(traj["attrs"]["frame_dt"])
+    roll = model.rollout_jit
+    t0 = time.perf_counter()
+    vs, ps = jax.block_until_ready(roll(params, graph, v0, F - 1))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(roll(params, graph, v0, F - 1))
+        times.append(time.perf_counter() - t0)
+    vs, ps = np.asarray(vs)[:, :n], np.asarray(ps)[:, :n]
+    mask = np.asarray(graph.predicted)[:n]
+    err = vs[:, mask] - traj["velocity"][:, mask]
+    rmse = np.sqrt(np.mean(err**2, axis=(1, 2)))
+    horizons = {h: float(rmse[h]) for h in (1, 50, F - 1) if h < F}
+    cfd = _shedding(traj, traj["pressure"][1:], dt)
+    gnn = _shedding(traj, ps, dt)
+    long_v, long_p = roll(params, graph, v0, long_factor * (F - 1))
+    long_v, long_p = np.asarray(long_v)[:, :n], np.asarray(long_p)[:, :n]
+    third = len(long_p) // 3
+    first = _shedding(traj, long_p[:third], dt)
+    last = _shedding(traj, long_p[-third:], dt)
+    cfd_speed = float(np.linalg.norm(traj["velocity"], axis=-1).max())
+    long_speed = float(np.nanmax(np.linalg.norm(long_v, axis=-1)))
+    cfd_pp = float(np.ptp(pressure_force_coefficients(traj, traj["pressure"])[1]))
+    last_pp = float(np.ptp(pressure_force_coefficients(traj, long_p[-third:])[1]))
+    sim_seconds = (F - 1) * dt
+    return dict(
+        key=traj["key"], reynolds=float(traj["attrs"]["reynolds"]), frames=F,
+        rmse=horizons, strouhal_cfd=cfd["strouhal"], strouhal_model=gnn["strouhal"],
+        strouhal_rel_error=abs(gnn["strouhal"] - cfd["strouhal"]) / cfd["strouhal"],
+        long_frames=long_factor * (F - 1), long_finite=bool(np.all(np.isfinite(long_v))),
+        long_max_speed=long_speed, cfd_max_speed=cfd_speed,
+        long_strouhal_first_third=first["strouhal"], long_strouhal_last_third=last["strouhal"],
+        long_lift_pp_last_third=last_pp, cfd_lift_pp=cfd_pp,
+        stable=bool(np.all(np.isfinite(long_v)) and long_speed < 2 * cfd_speed
+                    and abs(last["strouhal"] / first["strouhal"] - 1) < 0.05
+                    and 0.5 < last_pp / cfd_pp < 2.0),
+        compile_s=compile_s, model_s_per_sim_s=float(np.median(times)) / sim_seconds,
+        cfd_s_per_sim_s=float(traj["attrs"].get("cfd_wall_per_sim_second", np.nan)),
+        velocity=vs, pressure=ps, long_pressure=long_p)

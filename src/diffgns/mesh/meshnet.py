@@ -1,0 +1,194 @@
+"""MeshGraphNet (Pfaff et al. 2021) for incompressible flow on a triangular mesh.
+
+Reuses the particle GNS network (:class:`~diffgns.graph.networks.EncodeProcessDecode`) on the
+mesh's edges instead of a radius graph:
+
+* **graph**: every triangle side, de-duplicated, in both directions (:func:`mesh_edges`);
+  meshes are padded to fixed sizes (:func:`pad_mesh`) so different meshes share one jitted
+  step; padded edges are masked and padded nodes excluded from the loss.
+* **node features**: the normalised velocity (m/s) at the vertex and, with
+  ``MeshNetConfig.viscosity_feature``, the normalised log kinematic viscosity of the flow
+  (one value per graph, broadcast to its nodes): our datasets draw the Reynolds number and
+  the inflow speed independently, so the velocity field and the geometry alone do not fix
+  the viscous term. The node type (fluid 0, wall 1, inflow 2, outflow 3, padding 4) enters
+  through the network's type embedding, a linear layer on the one-hot type.
+* **edge features**: :func:`~diffgns.graph.features.edge_features` of the mesh positions,
+  ``[(x_s - x_r) / h, |x_s - x_r| / h]`` with ``h`` the mean edge length of the training
+  meshes (m).
+* **output**: the normalised velocity change over one frame (2) and the next frame's
+  pressure (1, kinematic p/rho in m^2/s^2) at the vertex.
+* **rollout**: ``v <- v + dv`` on fluid and outflow nodes; wall and inflow nodes are held at
+  their prescribed values (from the initial frame: the inflow profile is steady).
+
+Time is in frames (``frame_dt`` s). Everything here is pure and jit-friendly; the static
+configuration is a frozen dataclass, the statistics a pytree.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from diffgns.graph.features import Normalizer, edge_features
+from diffgns.graph.networks import EncodeProcessDecode
+
+FLUID, WALL, INFLOW, OUTFLOW, PAD = 0, 1, 2, 3, 4
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshNetConfig:
+    """Static MeshGraphNet configuration (reference: latent 128, 15 steps, 2 layers).
+
+    ``noise_std``: std (m/s) of the Gaussian noise added to fluid-node input velocities in
+    training; the target is taken against the noisy input, so the model learns to undo it.
+    ``viscosity_feature``: the graph's log kinematic viscosity is a node input (needs
+    ``MeshStats.viscosity`` and ``MeshGraph.viscosity``). Models saved before it existed load
+    with False.
+    """
+
+    latent: int = 64
+    mp_steps: int = 8
+    mlp_layers: int = 2
+    noise_std: float = 0.02
+    viscosity_feature: bool = True
+
+    def __post_init__(self):
+        if self.latent < 1 or self.mp_steps < 1 or self.mlp_layers < 1 or self.noise_std < 0:
+            raise ValueError(f"MeshNetConfig: sizes must be >= 1 and noise_std >= 0, got "
+                             f"{self}")
+
+
+@struct.dataclass
+class MeshStats:
+    """Normalisation statistics: velocity (m/s), target [dv (m/s/frame), p (m^2/s^2)], the
+    edge length scale (m) and, for models with the viscosity input, ln(nu) (nu in m^2/s)."""
+
+    velocity: Normalizer
+    target: Normalizer
+    edge_scale: float = struct.field(pytree_node=False, default=1.0)
+    viscosity: Normalizer | None = None
+
+
+@struct.dataclass
+class MeshGraph:
+    """A padded mesh: positions (N, 2) m, node_type (N,) int, senders/receivers (E,) int,
+    edge_mask (E,) bool, and the flow's kinematic viscosity () m^2/s (NaN when unknown).
+    Padding nodes have type PAD and sit at the origin."""
+
+    mesh_pos: jax.Array
+    node_type: jax.Array
+    senders: jax.Array
+    receivers: jax.Array
+    edge_mask: jax.Array
+    viscosity: jax.Array = struct.field(default_factory=lambda: jnp.asarray(jnp.nan))
+
+    @property
+    def predicted(self) -> jax.Array:
+        """(N,) bool: nodes whose velocity the model advances (fluid and outflow)."""
+        return (self.node_type == FLUID) | (self.node_type == OUTFLOW)
+
+
+def mesh_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Directed edges (senders, receivers) of a triangle mesh: each side once per direction.
+
+    cells (T, 3) int -> two (E,) int32 arrays, E = 2 x number of distinct sides.
+    """
+    cells = np.asarray(cells)
+    if cells.ndim != 2 or cells.shape[1] != 3:
+        raise ValueError(f"cells must be (T, 3), got {cells.shape}")
+    sides = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
+    sides = np.unique(np.sort(sides, axis=1), axis=0)
+    s = np.concatenate([sides[:, 0], sides[:, 1]]).astype(np.int32)
+    r = np.concatenate([sides[:, 1], sides[:, 0]]).astype(np.int32)
+    return s, r
+
+
+def pad_mesh(mesh_pos, cells, node_type, n_nodes: int, n_edges: int,
+             viscosity: float | None = None) -> MeshGraph:
+    """Build the edges of a mesh and pad it to ``n_nodes`` nodes and ``n_edges`` edges;
+    ``viscosity`` (m^2/s, > 0) is the flow's, needed by models with the viscosity input."""
+    if viscosity is not None and not (np.isfinite(viscosity) and viscosity > 0):
+        raise ValueError(f"viscosity must be a positive kinematic viscosity (m^2/s), got "
+                         f"{viscosity}")
+    mesh_pos, node_type = np.asarray(mesh_pos), np.asarray(node_type)
+    s, r = mesh_edges(cells)
+    n, e = len(mesh_pos), len(s)
+    if n > n_nodes or e > n_edges:
+        raise ValueError(f"mesh of {n} nodes / {e} edges exceeds the padding "
+                         f"{n_nodes} / {n_edges}")
+    pos = np.zeros((n_nodes, 2), mesh_pos.dtype)
+    pos[:n] = mesh_pos
+    types = np.full(n_nodes, PAD, np.int32)
+    types[:n] = node_type
+    pad = np.full(n_edges - e, n_nodes - 1 if n_nodes > n else 0, np.int32)
+    mask = np.zeros(n_edges, bool)
+    mask[:e] = True
+    nu = jnp.asarray(np.nan if viscosity is None else viscosity, jnp.result_type(float))
+    return MeshGraph(jnp.asarray(pos), jnp.asarray(types),
+                     jnp.asarray(np.concatenate([s, pad])),
+                     jnp.asarray(np.concatenate([r, pad])), jnp.asarray(mask), nu)
+
+
+class MeshNet:
+    """MeshGraphNet: network, statistics and the pure step/rollout functions."""
+
+    def __init__(self, config: MeshNetConfig, stats: MeshStats):
+        if config.viscosity_feature and stats.viscosity is None:
+            raise ValueError("MeshNet: viscosity_feature needs MeshStats.viscosity (the ln nu "
+                             "normaliser)")
+        self.config, self.stats = config, stats
+        self.net = EncodeProcessDecode(latent=config.latent, mp_steps=config.mp_steps,
+                                       mlp_layers=config.mlp_layers, n_types=PAD + 1, out=3)
+        # one compiled rollout per (padding, n_frames), shared by every call on this model
+        self.rollout_jit = jax.jit(self.rollout, static_argnums=3)
+
+    def check_graph(self, graph: MeshGraph) -> None:
+        """Raise ValueError if ``graph`` lacks what this model reads (call outside jit)."""
+        nu = np.asarray(graph.viscosity)
+        if self.config.viscosity_feature and not (np.all(np.isfinite(nu)) and np.all(nu > 0)):
+            raise ValueError("this MeshGraphNet reads the flow's viscosity: build the graph "
+                             "with pad_mesh(..., viscosity=nu)")
+
+    def _inputs(self, graph: MeshGraph, velocity):
+        v = self.stats.velocity.normalize(velocity)
+        if self.config.viscosity_feature:
+            nu = self.stats.viscosity.normalize(jnp.log(graph.viscosity)).astype(v.dtype)
+            v = jnp.concatenate([v, jnp.broadcast_to(nu, v.shape[:-1] + (1,))], axis=-1)
+        e = edge_features(graph.mesh_pos, graph.senders, graph.receivers, graph.edge_mask,
+                          self.stats.edge_scale)
+        return (v, graph.node_type, e, graph.senders, graph.receivers, graph.edge_mask)
+
+    def init(self, key: jax.Array, graph: MeshGraph) -> dict:
+        return self.net.init(key, *self._inputs(graph, jnp.zeros_like(graph.mesh_pos)))
+
+    def normalized_output(self, params, graph: MeshGraph, velocity) -> jax.Array:
+        """(N, 3) normalised [dv_x, dv_y, p] for velocities (N, 2) in m/s."""
+        return self.net.apply(params, *self._inputs(graph, velocity))
+
+    def predict(self, params, graph: MeshGraph, velocity):
+        """(dv (N, 2) m/s per frame, pressure (N,) m^2/s^2)."""
+        out = self.stats.target.denormalize(self.normalized_output(params, graph, velocity))
+        return out[:, :2], out[:, 2]
+
+    def step(self, params, graph: MeshGraph, velocity, held_velocity):
+        """One frame: next (velocity (N, 2), pressure (N,)); non-predicted nodes get
+        ``held_velocity`` (N, 2)."""
+        dv, p = self.predict(params, graph, velocity)
+        v = jnp.where(graph.predicted[:, None], velocity + dv, held_velocity)
+        return v, p
+
+    def rollout(self, params, graph: MeshGraph, v0, n_frames: int):
+        """Roll out ``n_frames`` frames from v0 (N, 2) m/s under ``lax.scan``.
+
+        Returns velocities (n_frames + 1, N, 2) (frame 0 is v0) and pressures (n_frames, N)
+        of frames 1..n_frames (each step predicts the next frame's pressure).
+        """
+        def body(v, _):
+            v_next, p = self.step(params, graph, v, v0)
+            return v_next, (v_next, p)
+
+        _, (vs, ps) = jax.lax.scan(body, v0, None, length=n_frames)
+        return jnp.concatenate([v0[None], vs]), ps

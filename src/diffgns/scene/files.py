@@ -1,0 +1,145 @@
+"""Scenes from and to TOML files (and plain dicts).
+
+Layout::
+
+    [scene]                      # domain, dx, gravity, frame_dt, padding, cfl, dt, damping ...
+    domain = [[0.0, 1.0], [0.0, 0.5]]
+    dx = 0.01
+    [walls]                      # left/right/bottom/top = {kind = "slip"|"sticky"|"friction", mu}
+    bottom = {kind = "friction", mu = 0.5}
+    [[bodies]]
+    shape = {type = "rectangle", x0 = 0.0, y0 = 0.0, x1 = 0.2, y1 = 0.2}
+    material = {type = "sand", friction_angle = 30.0}
+    [[obstacles]]
+    x0 = 0.5  y0 = 0.0  x1 = 0.6  y1 = 0.05  surface = {kind = "sticky"}
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from diffgns.errors import SceneError
+from diffgns.scene.core import WALL_NAMES, Body, BoxObstacle, Scene, Wall, Walls
+from diffgns.scene.materials import material_from_dict, material_to_dict
+from diffgns.scene.shapes import Polygon, Rectangle
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+SCENE_KEYS = {"domain", "dx", "gravity", "frame_dt", "padding", "cfl", "dt", "max_speed",
+              "damping"}
+
+
+def _check_keys(d: dict, allowed: set, where: str) -> None:
+    if not isinstance(d, dict):
+        raise SceneError(f"{where} must be a table, got {type(d).__name__}")
+    extra = set(d) - allowed
+    if extra:
+        raise SceneError(
+            f"{where} has unknown field(s) {sorted(extra)}; allowed: {sorted(allowed)}"
+        )
+
+
+def _wall(d: dict, where: str) -> Wall:
+    _check_keys(d, {"kind", "mu"}, where)
+    return Wall(kind=d.get("kind", "slip"), mu=d.get("mu", 0.0))
+
+
+def _shape(d: dict, where: str):
+    d = dict(d)
+    kind = d.pop("type", None)
+    if kind == "rectangle":
+        _check_keys(d, {"x0", "y0", "x1", "y1"}, where)
+        missing = {"x0", "y0", "x1", "y1"} - set(d)
+        if missing:
+            raise SceneError(f"{where} is missing {sorted(missing)}")
+        return Rectangle(**d)
+    if kind == "polygon":
+        _check_keys(d, {"vertices"}, where)
+        return Polygon(tuple(tuple(v) for v in d.get("vertices", ())))
+    raise SceneError(f"{where}.type = {kind!r} is unknown; use 'rectangle' or 'polygon'")
+
+
+def scene_from_dict(d: dict) -> Scene:
+    """Build a validated Scene from a dict with the TOML layout above."""
+    _check_keys(d, {"scene", "walls", "bodies", "obstacles"}, "scene file")
+    sc = dict(d.get("scene", {}))
+    _check_keys(sc, SCENE_KEYS, "[scene]")
+    if "domain" in sc:
+        sc["domain"] = tuple(tuple(ax) for ax in sc["domain"])
+    if "gravity" in sc:
+        sc["gravity"] = tuple(sc["gravity"])
+    walls = d.get("walls", {})
+    _check_keys(walls, set(WALL_NAMES), "[walls]")
+    wall_objs = Walls(**{k: _wall(v, f"[walls].{k}") for k, v in walls.items()})
+    bodies = []
+    for i, b in enumerate(d.get("bodies", [])):
+        where = f"[[bodies]][{i}]"
+        _check_keys(b, {"shape", "material", "velocity", "particles_per_cell", "name"}, where)
+        if "shape" not in b or "material" not in b:
+            raise SceneError(f"{where} needs both 'shape' and 'material'")
+        if not isinstance(b["material"], dict):
+            raise SceneError(f"{where}.material must be a table like {{type = \"sand\", ...}}")
+        velocity = b.get("velocity", (0.0, 0.0))
+        if not (isinstance(velocity, list | tuple) and len(velocity) == 2):
+            raise SceneError(f"{where}.velocity = {velocity!r} must be [vx, vy] in m/s")
+        bodies.append(Body(
+            shape=_shape(b["shape"], f"{where}.shape"),
+            material=material_from_dict(b["material"], where),
+            velocity=tuple(velocity),
+            particles_per_cell=b.get("particles_per_cell", 4), name=b.get("name", ""),
+        ))
+    obstacles = []
+    for i, o in enumerate(d.get("obstacles", [])):
+        where = f"[[obstacles]][{i}]"
+        _check_keys(o, {"x0", "y0", "x1", "y1", "surface"}, where)
+        missing = {"x0", "y0", "x1", "y1"} - set(o)
+        if missing:
+            raise SceneError(f"{where} is missing {sorted(missing)}")
+        surface = _wall(o.get("surface", {"kind": "sticky"}), f"{where}.surface")
+        obstacles.append(BoxObstacle(o["x0"], o["y0"], o["x1"], o["y1"], surface))
+    return Scene(bodies=tuple(bodies), walls=wall_objs, obstacles=tuple(obstacles), **sc)
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Load a scene from a TOML file; malformed files raise SceneError naming the problem."""
+    path = Path(path)
+    if not path.exists():
+        raise SceneError(f"scene file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"scene file {path} is not valid TOML: {e}") from e
+    return scene_from_dict(data)
+
+
+def scene_to_dict(s: Scene) -> dict:
+    def shape(sh):
+        if isinstance(sh, Rectangle):
+            return {"type": "rectangle", "x0": sh.x0, "y0": sh.y0, "x1": sh.x1, "y1": sh.y1}
+        return {"type": "polygon", "vertices": [list(v) for v in sh.vertices]}
+
+    sc = {"domain": [list(ax) for ax in s.domain], "dx": s.dx, "gravity": list(s.gravity),
+          "frame_dt": s.frame_dt, "padding": s.padding, "cfl": s.cfl, "damping": s.damping}
+    if s.dt is not None:
+        sc["dt"] = s.dt
+    if s.max_speed is not None:
+        sc["max_speed"] = s.max_speed
+    return {
+        "scene": sc,
+        "walls": {n: {"kind": w.kind, "mu": w.mu} for n, w in zip(WALL_NAMES, s.walls)},
+        "bodies": [{"shape": shape(b.shape), "material": material_to_dict(b.material),
+                    "velocity": list(b.velocity), "particles_per_cell": b.particles_per_cell,
+                    "name": b.name} for b in s.bodies],
+        "obstacles": [{"x0": o.x0, "y0": o.y0, "x1": o.x1, "y1": o.y1,
+                       "surface": {"kind": o.surface.kind, "mu": o.surface.mu}}
+                      for o in s.obstacles],
+    }
+
+
+def save_scene(s: Scene, path: str | Path) -> None:
+    import tomli_w
+
+    Path(path).write_text(tomli_w.dumps(scene_to_dict(s)))
