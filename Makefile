@@ -5,6 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= results/inverse
+PYTEST_ARGS ?= -q -x -n 2
 
 .PHONY: demo collapse test test-slow bench bench-gns symbolic lint venv
 
@@ -28,7 +29,9 @@ symbolic: $(VENV)/.installed-test
 
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks
-	$(PY) -m pytest -q -x -n 2
+	@# pytest exits 5 when it collected nothing: say so (.ci/run fails on this line)
+	$(PY) -m pytest $(PYTEST_ARGS) || { rc=$$?; [ $$rc -ne 5 ] || \
+		echo "pytest collected no tests (exit 5)" >&2; exit $$rc; }
 
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow
