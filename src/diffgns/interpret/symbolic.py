@@ -39,9 +39,11 @@ import dataclasses
 import time
 
 import numpy as np
-import sympy
 
+from diffgns._extras import require
 from diffgns.interpret import units as _units
+
+sympy = require("sympy", "symbolic")
 
 OPERATORS = "add,sub,mul,div,fmin,fmax,pow,exp,log,constant,variable"
 _HEAVY = ("Pow", "Exp", "Log")
@@ -131,7 +133,7 @@ def snap_powers(tree, evaluate, y: np.ndarray, tol: float = 0.1):
     multiple of 1/2 set to it (and frozen), other constants refitted to the least absolute
     error of ``evaluate(tree) -> prediction (n,)`` against ``y`` (n,). None if nothing was
     snapped."""
-    import pyoperon
+    pyoperon = require("pyoperon", "symbolic")
     from scipy.optimize import least_squares
 
     nodes, changed = tree.Nodes, False
@@ -222,7 +224,7 @@ def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str
     and ``target_unit`` the unit y must have (None: y's unit is arbitrary). ``snap_tol``:
     exponent snapping tolerance (0 disables it).
     """
-    from pyoperon.sklearn import SymbolicRegressor
+    SymbolicRegressor = require("pyoperon.sklearn", "symbolic").SymbolicRegressor
 
     X, y = np.asarray(X, np.float64), np.asarray(y, np.float64)
     if X.ndim != 2 or X.shape[1] != len(names) or len(y) != len(X):

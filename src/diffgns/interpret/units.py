@@ -22,7 +22,10 @@ Rules (``check(expr, units, target)``):
 from __future__ import annotations
 
 import numpy as np
-import sympy
+
+from diffgns._extras import require
+
+sympy = require("sympy", "symbolic")
 
 BASE = ("kg", "m", "s")
 _NAMED = {"N": (1, 1, -2), "J": (1, 2, -2), "1": (0, 0, 0), "": (0, 0, 0)}

@@ -15,9 +15,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from skfem import Basis, BilinearForm, ElementTriP1, ElementTriP2, MeshTri, asm
 
+from diffgns._extras import require
 from diffgns.mesh.geometry import ChannelMesh
+
+_skfem = require("skfem", "cfd")
+Basis, BilinearForm, MeshTri, asm = _skfem.Basis, _skfem.BilinearForm, _skfem.MeshTri, _skfem.asm
+ElementTriP1, ElementTriP2 = _skfem.ElementTriP1, _skfem.ElementTriP2
 
 _INTORDER = 5
 

@@ -32,7 +32,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import triangle
+
+from diffgns._extras import require
+
+triangle = require("triangle", "cfd")
 
 FLUID, WALL, INFLOW, OUTFLOW = 0, 1, 2, 3
 NODE_TYPE_NAMES = {FLUID: "fluid", WALL: "wall", INFLOW: "inflow", OUTFLOW: "outflow"}
