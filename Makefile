@@ -47,12 +47,12 @@ bench: $(VENV)/.installed-bench $(VENV)/.installed-test
 
 # GNS accuracy and the hybrid Pareto front need the datasets of the model cards (data/)
 bench-gns: $(VENV)/.installed-test
-	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_columns --data data/columns_test.h5
-	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_cg16 --data data/columns16_test.h5 \
+	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_columns --data data/columns_test.h5
+	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_cg16 --data data/columns16_test.h5 \
 		--out benchmarks/results/gns_cg16_accuracy.json
-	$(PY) benchmarks/gns_accuracy_speed.py --model models/gns_cg16_pfn --data data/columns16_test.h5 \
+	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_cg16_pfn --data data/columns16_test.h5 \
 		--out benchmarks/results/gns_cg16_pfn_accuracy.json --repeats 5 --mpm-1e-5-frames 10
-	$(PY) benchmarks/gns_neighbor_list.py --model models/gns_cg16_pfn --data data/columns16_test.h5
+	$(PY) benchmarks/gns_neighbor_list.py --model src/diffgns/models/gns_cg16_pfn --data data/columns16_test.h5
 	$(PY) benchmarks/hybrid_pareto.py
 	$(PY) benchmarks/inverse_gns_memory.py
 	$(PY) benchmarks/inverse_gns_bias.py

@@ -2,7 +2,7 @@
 against the MPM (at its stable dt and at the dt = 1e-5 s of the published training data),
 measured in one run on this machine.
 
-    python benchmarks/gns_accuracy_speed.py --model models/gns_columns \
+    python benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_columns \
         --data data/columns_test.h5 --out benchmarks/results/gns_accuracy_speed.json
 
 The reference for accuracy is the MPM trajectory of each test case, coarse-grained and
@@ -56,7 +56,7 @@ def gns_runner(gns, params, ref):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default="models/gns_columns")
+    ap.add_argument("--model", default="src/diffgns/models/gns_columns")
     ap.add_argument("--data", default="data/columns_test.h5")
     ap.add_argument("--out", default="benchmarks/results/gns_accuracy_speed.json")
     ap.add_argument("--repeats", type=int, default=3)

@@ -1,6 +1,6 @@
 """Cost of a GNS rollout under different neighbour-list settings, in one process.
 
-    python benchmarks/gns_neighbor_list.py --model models/gns_cg16_pfn \
+    python benchmarks/gns_neighbor_list.py --model src/diffgns/models/gns_cg16_pfn \
         --data data/columns16_test.h5 --out benchmarks/results/gns_neighbor_list.json
 
 Settings (all give the same edge set; only the candidate search and the edge-buffer head-room
@@ -44,7 +44,7 @@ def _variant(gns: GNS, multiplier: float, cell_list: bool) -> GNS:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default="models/gns_cg16_pfn")
+    ap.add_argument("--model", default="src/diffgns/models/gns_cg16_pfn")
     ap.add_argument("--data", default="data/columns16_test.h5")
     ap.add_argument("--out", default="benchmarks/results/gns_neighbor_list.json")
     ap.add_argument("--rounds", type=int, default=5)

@@ -1,6 +1,6 @@
 """Score candidate GNS models on validation collapses for model selection.
 
-    python benchmarks/gns_select.py models/gns_cg16_pfn runs/s9_avg_k4 \
+    python benchmarks/gns_select.py src/diffgns/models/gns_cg16_pfn runs/s9_avg_k4 \
         --data data/columns16_valid.h5 data/columns16_valid2.h5 --out selection.json
 
 For every model: its rollouts on every collapse of every ``--data`` file (from the first

@@ -69,8 +69,8 @@ def pareto(points):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", nargs="+",
-                    default=["models/gns_cg16_pf", "models/gns_cg16", "models/gns_columns",
-                             "models/gns_small"])
+                    default=["src/diffgns/models/gns_cg16_pf", "src/diffgns/models/gns_cg16",
+                             "src/diffgns/models/gns_columns", "src/diffgns/models/gns_small"])
     ap.add_argument("--frames", type=int, default=125, help="GNS frames (0.625 s)")
     ap.add_argument("--reference-cells", type=int, default=32)
     ap.add_argument("--mpm-cells", type=int, nargs="+", default=[4, 8, 12, 16])

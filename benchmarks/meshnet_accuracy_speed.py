@@ -1,7 +1,7 @@
 """MeshGraphNet against our CFD on held-out cylinder flows: accuracy, shedding, stability and
 cost per simulated second, in one run.
 
-    python benchmarks/meshnet_accuracy_speed.py --model models/meshnet_cylinder/model \
+    python benchmarks/meshnet_accuracy_speed.py --model src/diffgns/models/meshnet_cylinder/model \
         --data data/cylinder_test.h5 --out benchmarks/results/meshnet_accuracy_speed.json
 
 Per trajectory (rollout from its first frame; see ``diffgns.mesh.evaluate``): velocity
@@ -33,7 +33,7 @@ from diffgns.mesh.train import load_cylinder, load_model  # noqa: E402
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="models/meshnet_cylinder/model")
+    ap.add_argument("--model", default="src/diffgns/models/meshnet_cylinder/model")
     ap.add_argument("--data", default="data/cylinder_test.h5")
     ap.add_argument("--out", default=str(RESULTS_DIR / "meshnet_accuracy_speed.json"))
     ap.add_argument("--repeats", type=int, default=3)

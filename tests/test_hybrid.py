@@ -11,9 +11,10 @@ from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.handoff import lsq_gradient, node_means, particles_from_nodes
 from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, Schedule
 from diffgns.metrics import runout
+from diffgns.models import model_path
 from diffgns.scene.builders import column_collapse
 
-MODEL = "models/gns_columns"
+MODEL = model_path("gns_columns")
 
 
 def small_scene(phi=30.0, aspect_ratio=0.5):

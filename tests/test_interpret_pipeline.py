@@ -1,12 +1,11 @@
 """The shipped message networks: the premise on held-out edges, and the whole pipeline (slow)."""
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from diffgns.interpret import message_net, messages, nbody_data, pipeline
+from diffgns.models import models_root
 
-MODELS = Path(__file__).resolve().parents[1] / "models"
+MODELS = models_root()
 
 
 @pytest.fixture(scope="module", params=[(law, variant) for law in pipeline.SYSTEMS

@@ -1,8 +1,8 @@
-"""The shipped GNS checkpoints load, and long rollouts stay physical."""
+"""The shipped models are found from any working directory, the GNS checkpoints load, and
+long rollouts stay physical."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -11,14 +11,30 @@ import pytest
 from diffgns import MPM
 from diffgns.graph.data import coarse_grain
 from diffgns.graph.train_loop import load_model
+from diffgns.models import model_path, shipped_models
 from diffgns.scene.builders import column_collapse
 
-MODELS = sorted(p.parent for p in Path("models").glob("*/config.json")
-                if json.loads(p.read_text()).get("gns"))
+# resolved through the package (importlib.resources), not the working directory
+GNS_MODELS = [name for name in shipped_models()
+              if (model_path(name) / "config.json").is_file()
+              and json.loads((model_path(name) / "config.json").read_text()).get("gns")]
 
 
-@pytest.mark.parametrize("path", MODELS, ids=[p.name for p in MODELS])
-def test_model_folder_is_complete(path):
+def test_shipped_models_are_found():
+    """Every shipped model is listed, whatever directory pytest runs from: an empty list
+    would make the parametrised test below collect nothing and pass."""
+    names = shipped_models()
+    assert {"gns_columns", "gns_cg16_pfn", "meshnet_cylinder", "message_net_spring_l1"} <= set(
+        names)
+    assert len(GNS_MODELS) >= 5 and set(GNS_MODELS) <= set(names)
+    assert model_path("gns_columns") == model_path("models/gns_columns")  # old spelling
+    with pytest.raises(FileNotFoundError, match="shipped models: gns_cg16, "):
+        model_path("no_such_model")
+
+
+@pytest.mark.parametrize("name", GNS_MODELS)
+def test_model_folder_is_complete(name):
+    path = model_path(name)
     assert (path / "params.msgpack").exists() and (path / "MODEL_CARD.md").exists()
     gns, params, info = load_model(path)
     assert gns.config.radius > 0 and info["factor"] >= 1 and info["frame_stride"] >= 1
@@ -29,7 +45,7 @@ def test_long_rollout_comes_to_rest_inside_the_box(model, cells_across):
     """3x the training horizon (375 GNS frames, 1.9 s; gns_cg16_pfn: 375 frames of 5 ms,
     3.1x its 120) on a column not in training: no NaN, no particle outside the box, and the
     kinetic energy decays to < 1e-3 of its peak once the deposit is at rest."""
-    gns, params, info = load_model(f"models/{model}")
+    gns, params, info = load_model(model_path(model))
     scene = column_collapse(width=0.1, aspect_ratio=1.25, friction_angle=32.5,
                             cells_across=cells_across, domain_length=0.8, domain_height=0.35)
     sim = MPM(scene)

@@ -20,6 +20,7 @@ import sys
 import numpy as np
 
 from diffgns.errors import SceneError, UnstableError
+from diffgns.models import model_path
 
 
 def _simulate(args) -> int:
@@ -337,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_rollout)
 
     h = sub.add_parser("hybrid", help="hybrid GNS/MPM column collapse against MPM and GNS")
-    h.add_argument("--model", default="models/gns_columns")
+    h.add_argument("--model", default=str(model_path("gns_columns")))
     h.add_argument("--aspect-ratio", type=float, default=1.75)
     h.add_argument("--friction-angle", type=float, default=27.5, help="degrees")
     h.add_argument("--frames", type=int, default=125, help="GNS frames")

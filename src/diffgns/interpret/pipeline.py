@@ -48,6 +48,7 @@ from diffgns.graph.training import TrainConfig
 from diffgns.interpret import message_net, messages, nbody_data, symbolic
 from diffgns.interpret.nbody import NBodyConfig
 from diffgns.interpret.nbody_data import EDGE_UNITS
+from diffgns.models import models_root
 
 SYSTEMS = {
     "spring": NBodyConfig(),
@@ -259,7 +260,7 @@ def add_arguments(parser) -> None:
                         help="message network: L1-penalised, dimension 100 (models/"
                              "message_net_<law>_l1), or bottleneck, dimension 2 "
                              "(models/message_net_<law>)")
-    parser.add_argument("--models", default="models",
+    parser.add_argument("--models", default=str(models_root()),
                         help="folder holding the shipped message networks")
     parser.add_argument("--train", action="store_true",
                         help="train a new message network instead of loading the shipped one "

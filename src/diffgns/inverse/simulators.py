@@ -34,7 +34,7 @@ from diffgns.mpm import MPM
 from diffgns.scene.builders import column_collapse
 from diffgns.trajectory import SAND
 
-DEFAULT_MODEL = Path(__file__).resolve().parents[3] / "models" / "gns_columns"
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "models" / "gns_columns"  # shipped data
 
 
 @dataclass(frozen=True)
