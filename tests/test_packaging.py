@@ -1,16 +1,19 @@
-"""Packaging: optional extras fail with the command that installs them, and the core imports
-without them."""
+"""Packaging: optional extras fail with the command that installs them, the core imports
+without them, and a non-editable install finds its shipped models from any directory."""
 from __future__ import annotations
 
 import importlib
 import json
 import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from diffgns._extras import MissingExtraError, require
+from diffgns.models import shipped_models
 
 #: import names that come only with an extra (not scipy and sympy: jax needs scipy, and jax-md
 #: imports sympy through e3nn-jax, so both are always installed with the core)
@@ -114,3 +117,52 @@ def test_core_imports_without_any_extra():
     needing = {m for m, s in status.items() if s.startswith("extra")}
     assert {"diffgns.mesh.geometry", "diffgns.mesh.fem", "diffgns.mesh.cfd"} <= needing
     assert "diffgns.mesh.meshnet" not in needing  # the MeshGraphNet model itself is core JAX
+
+
+_INSTALLED = """
+import json, sys
+import diffgns
+from diffgns.graph.train_loop import load_model
+from diffgns.interpret import message_net
+from diffgns.mesh.train import load_model as load_mesh_model
+from diffgns.models import model_path, models_root, shipped_models
+gns, params, info = load_model(model_path("gns_columns"))
+load_mesh_model(model_path("meshnet_cylinder/model"))
+message_net.load(model_path("message_net_spring_l1/model"))
+print(json.dumps(dict(package=diffgns.__file__, root=str(models_root()),
+                      models=shipped_models(), radius=gns.config.radius,
+                      factor=info["factor"],
+                      logs=sorted(p.name for p in models_root().rglob("*.csv")))))
+"""
+
+
+def test_non_editable_install_loads_shipped_models_from_any_directory(tmp_path):
+    """``pip install .`` (a wheel, not editable) finds its shipped models from a working
+    directory outside the source tree: the models are package data found through
+    importlib.resources. Built from a copy of the sources, so the tree is left clean."""
+    repo = Path(__file__).resolve().parents[1]
+    copy = tmp_path / "source"
+    copy.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(repo / name, copy / name)
+    shutil.copytree(repo / "src", copy / "src",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    pip = [sys.executable, "-m", "pip", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, "wheel", "--no-deps", "--no-build-isolation", "-w",
+                    str(tmp_path / "dist"), str(copy)], check=True, timeout=300)
+    (wheel,) = (tmp_path / "dist").glob("diffgns-*.whl")
+    site = tmp_path / "site"
+    subprocess.run([*pip, "install", "--no-deps", "--no-compile", "--target", str(site),
+                    str(wheel)], check=True, timeout=300)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site), "JAX_PLATFORMS": "cpu"}
+    res = subprocess.run([sys.executable, "-c", _INSTALLED], cwd=elsewhere, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert Path(out["package"]).is_relative_to(site)  # the wheel, not the source tree
+    assert Path(out["root"]).is_relative_to(site)
+    assert out["models"] == shipped_models() and len(out["models"]) >= 10
+    assert out["radius"] > 0 and out["factor"] == 4
+    assert out["logs"] == []  # training logs stay in the source tree
