@@ -29,6 +29,7 @@ symbolic: $(VENV)/.installed-test
 
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks
+	$(VENV)/bin/lint-imports  # layering contract: [tool.importlinter] in pyproject.toml
 	@# pytest exits 5 when it collected nothing: say so (.ci/run fails on this line)
 	$(PY) -m pytest $(PYTEST_ARGS) || { rc=$$?; [ $$rc -ne 5 ] || \
 		echo "pytest collected no tests (exit 5)" >&2; exit $$rc; }
