@@ -1,6 +1,7 @@
 # Two commands set everything up on a fresh machine with nothing but Python:
 #   make demo   - create/reuse .venv, install diffgns, run the main example
-#   make test   - create/reuse .venv, install diffgns[test], run ruff and the default tests
+#   make test   - create/reuse .venv, install diffgns[test], run ruff, the layering contract
+#                 (import-linter), the type check (mypy) and the default tests
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -30,6 +31,7 @@ symbolic: $(VENV)/.installed-test
 test: $(VENV)/.installed-test
 	$(VENV)/bin/ruff check src tests examples benchmarks
 	$(VENV)/bin/lint-imports  # layering contract: [tool.importlinter] in pyproject.toml
+	$(VENV)/bin/mypy  # type check of src: [tool.mypy] in pyproject.toml
 	@# pytest exits 5 when it collected nothing: say so (.ci/run fails on this line)
 	$(PY) -m pytest $(PYTEST_ARGS) || { rc=$$?; [ $$rc -ne 5 ] || \
 		echo "pytest collected no tests (exit 5)" >&2; exit $$rc; }
