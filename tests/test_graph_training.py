@@ -56,8 +56,8 @@ def small_gns(trajs):
 
 def _init(gns, trajs):
     t = trajs[0]
-    return gns.init(jax.random.PRNGKey(0), (jnp.swapaxes(t.positions[:6], 0, 1),
-                                            t.particle_type, t.material))
+    return gns.init_network(jax.random.PRNGKey(0), (jnp.swapaxes(t.positions[:6], 0, 1),
+                                                    t.particle_type, t.material))
 
 
 def test_target_is_corrected_for_input_noise_exactly_once():
@@ -246,3 +246,35 @@ def test_average_models_is_the_elementwise_mean_of_compatible_models(tmp_path):
     (tmp_path / "mesh" / "config.json").write_text('{"meshnet": {}}')
     with pytest.raises(ValueError, match="not a particle GNS"):
         average_models([tmp_path / "a", tmp_path / "mesh"], tmp_path / "x")
+
+
+def test_train_run_resumes_validates_and_writes_a_loadable_model(tmp_path):
+    """train(): the GNS run on the shared loop; stopped at a checkpoint and resumed it ends
+    where an uninterrupted run does, with the validation log and a model folder."""
+    from diffgns.graph.train_loop import load_model, train
+
+    write_gns_npz(tmp_path / "train.npz", synthetic())
+    write_gns_npz(tmp_path / "valid.npz", synthetic(1, seed=5))
+    kw = dict(bounds=BOUNDS, radius=0.045, latent=16, mp_steps=1, mlp_layers=1,
+              noise_std=1e-4)
+    cfg = lambda steps: TrainConfig(steps=steps, batch_size=2, lr=3e-3, lr_final=3e-4,
+                                    lr_decay_steps=8, log_every=2, checkpoint_every=4,
+                                    validate_every=4)
+    run = lambda out, steps: train([tmp_path / "train.npz"], tmp_path / out, kw, cfg(steps),
+                                   valid_path=tmp_path / "valid.npz", n_valid=1,
+                                   progress=False)
+    _, straight = run("a", 8)
+    run("b", 4)
+    gns, resumed = run("b", 8)
+    for a, b in zip(jax.tree.leaves(straight), jax.tree.leaves(resumed)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-7)
+    log = (tmp_path / "b" / "train_log.csv").read_text().splitlines()
+    assert log[0] == "step,loss,lr,seconds" and [r.split(",")[0] for r in log[1:]] == \
+        ["2", "4", "6", "8"]
+    valid = [json.loads(s) for s in (tmp_path / "b" / "valid_log.jsonl").read_text()
+             .splitlines()]
+    assert [v["step"] for v in valid] == [4, 8] and "runout_rel_error" in valid[0]
+    g, p, info = load_model(tmp_path / "b" / "model")
+    assert g.config == gns.config and info["steps"] == 8
+    for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -1,5 +1,6 @@
-"""The training run: data, neighbour lists per node count, progress, logs, checkpoints,
-validation rollouts, resume. Used by ``diffgns train``.
+"""The GNS training run: data, normaliser, neighbour lists per node count, validation
+rollouts and the model folder, around the shared loop :func:`diffgns.graph.fit.fit`
+(checkpoints, exact resume, logs, SIGTERM, learning-rate schedule). Used by ``diffgns train``.
 
 Files in ``out_dir``: ``checkpoint.msgpack`` (+ ``.json``: step, configs), ``train_log.csv``
 (step, loss, lr, seconds), ``valid_log.jsonl`` (validation metrics), ``model/`` (the final
@@ -9,27 +10,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization
-from tqdm import tqdm
 
 from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import Normalizers
+from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
-from diffgns.graph.training import (
-    TrainConfig,
-    Trainer,
-    load_checkpoint,
-    save_checkpoint,
-    step_rng,
-    step_with_reallocation,
-)
+from diffgns.graph.training import Trainer, step_with_reallocation
 
 
 def save_model(out: Path, gns: GNS, params, info: dict) -> None:
@@ -56,10 +49,11 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
     n = info["normalizer"]
     norm = Normalizers.from_metadata(dict(vel_mean=n["vel_mean"], vel_std=n["vel_std"],
                                           acc_mean=n["acc_mean"], acc_std=n["acc_std"]), 0.0)
-    gns = GNS(cfg, norm)
+    src = info.get("source") or {}
+    gns = GNS(cfg, norm, frame_dt=float(src.get("dt", 2.5e-3)) * int(info.get("frame_stride", 1)))
     C = cfg.history
-    template = gns.init(jax.random.PRNGKey(0), (jnp.zeros((2, C + 1, 2)) + 0.5,
-                                                 jnp.zeros(2, jnp.int32), jnp.zeros(2)))
+    template = gns.init_network(jax.random.PRNGKey(0), (jnp.zeros((2, C + 1, 2)) + 0.5,
+                                                         jnp.zeros(2, jnp.int32), jnp.zeros(2)))
     params = serialization.from_bytes(template, (path / "params.msgpack").read_bytes())
     return gns, params, info
 
@@ -101,7 +95,8 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
                        if k in meta}
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
     cfg = GNSConfig(bounds=bounds, **gns_kw)
-    return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std)), trajs, stats
+    frame_dt = float(trajs[0].frame_dt) if trajs else 2.5e-3
+    return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std), frame_dt), trajs, stats
 
 
 def _initial_model(path, gns: GNS):
@@ -113,7 +108,7 @@ def _initial_model(path, gns: GNS):
     if diff := _network_difference(base.config, gns.config):
         raise ValueError(f"--init-from model {path} has a different configuration: "
                          f"(model, requested) = {diff}")
-    return GNS(gns.config, base.normalizer), params
+    return GNS(gns.config, base.normalizer, gns.frame_dt), params
 
 
 def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:
@@ -148,56 +143,31 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
-    params = gns.init(jax.random.PRNGKey(tcfg.seed),
-                      (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
-                       jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
-    ckpt = out / "checkpoint.msgpack"
-    if init_from is not None and not ckpt.exists():
+    params = gns.init_network(jax.random.PRNGKey(tcfg.seed),
+                              (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
+                               jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
+    if init_from is not None and not has_checkpoint(out):
         gns, params = _initial_model(init_from, gns)
         trainer = Trainer(gns, tcfg)
         print(f"fine-tuning from {init_from}")
-    opt_state = trainer.opt.init(params)
-    step = 0
-    if ckpt.exists():
-        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
-        print(f"resumed from {ckpt} at step {step}")
     source = stats.pop("source")
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source)
     (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
     nbrs = {}
-    log = (out / "train_log.csv").open("a")
-    if step == 0:
-        log.write("step,loss,lr,seconds\n")
-    rate = (tcfg.lr_final / tcfg.lr) ** (1.0 / max(tcfg.lr_decay_steps, 1))
-    t_start, losses = time.perf_counter(), []
-    bar = tqdm(total=tcfg.steps, initial=step, desc="train", disable=not progress)
-    while step < tcfg.steps:
+
+    def update(params, opt_state, step):
         rng, key = step_rng(tcfg.seed, step)
         batch = sampler.sample(rng, tcfg.batch_size)
         params, opt_state, loss = step_with_reallocation(trainer, params, opt_state, batch,
                                                          nbrs, key)
-        step += 1
-        losses.append(float(loss))
-        bar.update(1)
-        if step % tcfg.log_every == 0 or step == tcfg.steps:
-            lr = max(tcfg.lr * rate**step, tcfg.lr_final)
-            log.write(f"{step},{np.mean(losses):.6g},{lr:.3g},"
-                      f"{time.perf_counter() - t_start:.1f}\n")
-            log.flush()
-            bar.set_postfix(loss=f"{np.mean(losses):.4f}")
-            losses = []
-        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
-            save_checkpoint(ckpt, params, opt_state, step, info)
-        if valid and (step % tcfg.validate_every == 0 or step == tcfg.steps):
-            res = evaluate(gns, params, valid)
-            with (out / "valid_log.jsonl").open("a") as f:
-                f.write(json.dumps(dict(step=step, **res["mean"])) + "\n")
-            m = res["mean"]
-            bar.write(f"step {step}: valid runout error {m['runout_rel_error']:.3f}, final "
-                      f"position error {m['final_position_error_rel_displacement']:.3f}")
-    bar.close()
-    log.close()
+        return params, opt_state, (loss,)
+
+    validate = (lambda p: evaluate(gns, p, valid)["mean"]) if valid else None
+    params, opt_state, step = fit(
+        update, params, trainer.opt.init(params), tcfg, out, info, ["loss"], desc="train",
+        progress=progress, validate=validate,
+        show=("runout_rel_error", "final_position_error_rel_displacement"))
     save_model(out / "model", gns, params, dict(info, steps=step))
     return gns, params

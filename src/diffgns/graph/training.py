@@ -1,65 +1,36 @@
-"""GNS training: noisy one-step loss, optax, checkpoints with exact resume, data parallel.
+"""GNS training step: noisy one-step loss, push-forward, data-parallel optimiser step.
 
 The loss is the MSE of the normalised acceleration over non-kinematic particles, with
 random-walk input noise and the target corrected for it. Batches are split over all visible
 devices with ``jax.sharding`` (parameters replicated, batch sharded); XLA inserts the
-gradient all-reduce. Randomness is a pure function of (seed, step), so a run resumed from a
-checkpoint draws exactly the batches and noise an uninterrupted run would.
+gradient all-reduce. The loop around the step (checkpoints, exact resume, logs, SIGTERM,
+learning-rate schedule) is :func:`diffgns.graph.fit.fit`, shared by every trained network;
+its configuration and checkpoint helpers are re-exported here.
 """
 from __future__ import annotations
 
-import dataclasses
-import json
 import time
-from collections.abc import Sequence
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from tqdm import tqdm
 
 from diffgns.graph.features import random_walk_noise, target_acceleration
+from diffgns.graph.fit import (  # re-exported: the training API of every network
+    TrainConfig,
+    load_checkpoint,
+    make_optimizer,
+    save_checkpoint,
+    step_rng,
+)
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import did_overflow, edges
 from diffgns.trajectory import KINEMATIC
 
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """Static training configuration.
-
-    Attributes:
-        steps: optimiser steps. batch_size: windows per step (split across devices).
-        lr, lr_final, lr_decay_steps: Adam with exponential decay lr -> lr_final over
-            lr_decay_steps, floored at lr_final.
-        push_forward: extra unrolled steps (without gradient) before the loss step.
-        momentum_weight: weight of the soft momentum-balance penalty: the squared error of
-            the mean predicted acceleration (the total momentum change of the system per
-            frame, equal masses) against the data's. 0 disables it.
-        seed, log_every, validate_every, checkpoint_every.
-    """
-
-    steps: int = 20000
-    batch_size: int = 2
-    lr: float = 1e-3
-    lr_final: float = 1e-5
-    lr_decay_steps: int = 20000
-    push_forward: int = 0
-    momentum_weight: float = 0.0
-    seed: int = 0
-    log_every: int = 50
-    validate_every: int = 2000
-    checkpoint_every: int = 500
-
-
-def make_optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
-    rate = (cfg.lr_final / cfg.lr) ** (1.0 / max(cfg.lr_decay_steps, 1))
-    sched = optax.exponential_decay(cfg.lr, 1, rate, end_value=cfg.lr_final)
-    return optax.adam(sched)
+__all__ = ["TrainConfig", "Trainer", "load_checkpoint", "make_optimizer", "pushed_target",
+           "save_checkpoint", "step_rng", "step_with_reallocation", "window_loss"]
 
 
 def pushed_target(window, hist, unroll: int):
@@ -168,33 +139,6 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
     raise RuntimeError(f"neighbour list overflowing after {max_retries} re-allocations")
 
 
-# ----------------------------------------------------------------------- checkpoints
-def save_checkpoint(path: Path, params, opt_state, step: int, extra: dict) -> None:
-    """Atomically write params, optimiser state and step (msgpack) plus a JSON sidecar."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    blob = serialization.to_bytes(dict(params=params, opt_state=opt_state,
-                                       step=np.asarray(step)))
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(blob)
-    tmp.replace(path)
-    path.with_suffix(".json").write_text(json.dumps(dict(extra, step=step), indent=2,
-                                                    default=str))
-
-
-def load_checkpoint(path: Path, params_template, opt_state_template):
-    """Restore (params, opt_state, step) saved by :func:`save_checkpoint`."""
-    target = dict(params=params_template, opt_state=opt_state_template, step=np.asarray(0))
-    d = serialization.from_bytes(target, Path(path).read_bytes())
-    return d["params"], d["opt_state"], int(d["step"])
-
-
-def step_rng(seed: int, step: int):
-    """(numpy Generator, jax key) for ``step``: a pure function of (seed, step)."""
-    return (np.random.default_rng([seed, step]),
-            jax.random.fold_in(jax.random.PRNGKey(seed), step))
-
-
 def timed_steps(trainer: Trainer, params, opt_state, batch, nbrs, n: int = 5) -> float:
     """Median seconds per step on a fixed batch (after one warm-up step)."""
     key = jax.random.PRNGKey(0)
@@ -206,39 +150,3 @@ def timed_steps(trainer: Trainer, params, opt_state, batch, nbrs, n: int = 5) ->
         jax.block_until_ready(trainer.step(params, opt_state, batch, nbrs, key))
         ts.append(time.perf_counter() - t0)
     return float(np.median(ts))
-
-
-def fit_loop(update, params, opt_state, step: int, tcfg: TrainConfig, out: Path, info: dict,
-             columns: Sequence[str], desc: str = "train", progress: bool = True):
-    """The optimiser loop shared by the MeshGraphNet and message-network trainers.
-
-    ``update(params, opt_state, step) -> (params, opt_state, metrics)`` does one step (it
-    draws its batch and key from ``step``, e.g. with :func:`step_rng`, so a resumed run
-    repeats an uninterrupted one exactly); ``metrics`` are scalars named by ``columns``.
-    Appends their means over every ``log_every`` steps to ``out/train_log.csv`` (with the
-    seconds since this call) and writes ``out/checkpoint.msgpack`` every
-    ``checkpoint_every`` steps and at the end. Returns (params, opt_state, step).
-    """
-    ckpt = Path(out) / "checkpoint.msgpack"
-    log = (Path(out) / "train_log.csv").open("a")
-    if step == 0:
-        log.write(",".join(["step", *columns, "seconds"]) + "\n")
-    t0, hist = time.perf_counter(), []
-    bar = tqdm(total=tcfg.steps, initial=step, desc=desc, disable=not progress)
-    while step < tcfg.steps:
-        params, opt_state, metrics = update(params, opt_state, step)
-        step += 1
-        hist.append([float(m) for m in metrics])
-        bar.update(1)
-        if step % tcfg.log_every == 0 or step == tcfg.steps:
-            mean = np.mean(hist, axis=0)
-            log.write(f"{step}," + ",".join(f"{m:.6g}" for m in mean)
-                      + f",{time.perf_counter() - t0:.1f}\n")
-            log.flush()
-            bar.set_postfix({c: f"{m:.4g}" for c, m in zip(columns, mean)})
-            hist = []
-        if step % tcfg.checkpoint_every == 0 or step == tcfg.steps:
-            save_checkpoint(ckpt, params, opt_state, step, info)
-    bar.close()
-    log.close()
-    return params, opt_state, step

@@ -9,10 +9,9 @@ absolute) error of the normalised accelerations, plus ``l1_weight`` times the me
 of the L1 norm of the messages, so that only as many components stay active as the physics
 needs (two, in 2D), plus ``node_l2`` times the squared first-layer kernel of the node model.
 
-Training reuses the GNS machinery: :func:`diffgns.graph.training.make_optimizer` (Adam with
-exponential decay to a floor), :func:`~diffgns.graph.training.save_checkpoint` /
-:func:`~diffgns.graph.training.load_checkpoint` (exact resume) and
-:func:`~diffgns.graph.training.step_rng` (per-step RNG as a function of (seed, step)).
+Training runs in the loop every network shares, :func:`diffgns.graph.fit.fit` (Adam with
+exponential decay to a floor, checkpoints with exact resume, logs, SIGTERM); the batch of a
+step is a function of (seed, step) (:func:`~diffgns.graph.fit.step_rng`).
 """
 from __future__ import annotations
 
@@ -27,14 +26,8 @@ import numpy as np
 import optax
 from flax import serialization
 
+from diffgns.graph.fit import TrainConfig, fit, make_optimizer, step_rng
 from diffgns.graph.networks import MLP
-from diffgns.graph.training import (
-    TrainConfig,
-    fit_loop,
-    load_checkpoint,
-    make_optimizer,
-    step_rng,
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,7 +169,6 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
     params = net.init(jax.random.PRNGKey(tcfg.seed), jnp.zeros(samples["edges"].shape[1:]),
                       jnp.zeros(samples["node"].shape[1:]), recv)
     opt = make_optimizer(tcfg)
-    opt_state = opt.init(params)
     loss_fn = make_loss(net, norm, recv)
 
     @jax.jit
@@ -186,9 +178,6 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, aux
 
-    ckpt, step = out / "checkpoint.msgpack", 0
-    if ckpt.exists():
-        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
     info = dict(train=dataclasses.asdict(tcfg), n_graphs=int(len(samples["edges"])))
     n_graphs = len(samples["edges"])
 
@@ -200,7 +189,8 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
             min(1.0, step / cfg.l1_warmup) if cfg.l1_warmup else 1.0)
         return params, opt_state, (loss, fit, l1)
 
-    params, opt_state, step = fit_loop(one_step, params, opt_state, step, tcfg, out, info,
-                                       ["loss", "fit", "message_l1"], "message net", progress)
+    params, opt_state, step = fit(one_step, params, opt.init(params), tcfg, out, info,
+                                  ["loss", "fit", "message_l1"], desc="message net",
+                                  progress=progress)
     save(out / "model", cfg, norm, params, dict(info, steps=step))
     return net, norm, params

@@ -1,9 +1,8 @@
 """Training, saving and loading of MeshGraphNet models on cylinder-flow datasets.
 
-Shares the GNS training machinery: :class:`~diffgns.graph.training.TrainConfig`,
-:func:`~diffgns.graph.training.make_optimizer` (Adam, exponential decay to a floor),
-:func:`~diffgns.graph.training.save_checkpoint` / ``load_checkpoint`` (exact resume: params,
-optimiser state, step; the RNG is a function of (seed, step), :func:`step_rng`).
+Trained by the loop every network shares, :func:`diffgns.graph.fit.fit` (checkpoints,
+exact resume, logs, SIGTERM, Adam with exponential learning-rate decay to a floor); the
+batch and noise of a step are a function of (seed, step) (:func:`~diffgns.graph.fit.step_rng`).
 
 One sample is one (trajectory, frame) pair: input velocity ``v_t`` with Gaussian noise
 (``noise_std``, m/s) on fluid nodes, target ``[v_{t+1} - v_noisy, p_{t+1}]`` normalised;
@@ -27,13 +26,7 @@ import optax
 from flax import serialization
 
 from diffgns.graph.features import Normalizer, combine_std
-from diffgns.graph.training import (
-    TrainConfig,
-    fit_loop,
-    load_checkpoint,
-    make_optimizer,
-    step_rng,
-)
+from diffgns.graph.fit import TrainConfig, fit, make_optimizer, step_rng
 from diffgns.io.dataset import read_metadata
 from diffgns.mesh.dataset import iter_cylinder_dataset
 from diffgns.mesh.meshnet import (
@@ -155,7 +148,7 @@ def load_model(path: str | Path):
     n, e = info["padding"]
     dummy = MeshGraph(jnp.zeros((n, 2)), jnp.zeros(n, jnp.int32), jnp.zeros(e, jnp.int32),
                       jnp.zeros(e, jnp.int32), jnp.zeros(e, bool), jnp.ones(()))
-    params = serialization.from_bytes(model.init(jax.random.PRNGKey(0), dummy),
+    params = serialization.from_bytes(model.init_network(jax.random.PRNGKey(0), dummy),
                                       (path / "params.msgpack").read_bytes())
     return model, params, info
 
@@ -164,7 +157,7 @@ def _pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
     """``v`` (N, 2) advanced ``n_push`` (traced int) model frames with stopped gradients;
     non-predicted nodes keep their values in ``v`` (steady boundary conditions)."""
     frozen = jax.lax.stop_gradient(params)
-    body = lambda _, u: model.step(frozen, graph, u, v)[0]
+    body = lambda _, u: model.advance(frozen, graph, u, v)[0]
     return jax.lax.stop_gradient(jax.lax.fori_loop(0, n_push, body, v))
 
 
@@ -224,15 +217,11 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
     vel, pres = padded_fields(trajs, padding[0])
     opt = make_optimizer(tcfg)
     model.check_graph(graphs)
-    params = model.init(jax.random.PRNGKey(tcfg.seed),
-                        jax.tree_util.tree_map(lambda a: a[0], graphs))
+    params = model.init_network(jax.random.PRNGKey(tcfg.seed),
+                                jax.tree_util.tree_map(lambda a: a[0], graphs))
     if init_from is not None:
         params, stats = fine_tune_start(init_from, cfg, params, model.stats)
         model = MeshNet(cfg, stats)
-    opt_state, step = opt.init(params), 0
-    ckpt = out / "checkpoint.msgpack"
-    if ckpt.exists():
-        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
 
     def batch_loss(params, g, v, vn, pn, key, push):
         keys = jax.random.split(key, v.shape[0])
@@ -261,7 +250,7 @@ def train(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig, padding=No
                                          pres[ti, fi + k + 1], key, jnp.asarray(k, jnp.int32))
         return params, opt_state, (loss,)
 
-    params, opt_state, step = fit_loop(one_step, params, opt_state, step, tcfg, out, info,
-                                       ["loss"], "meshgraphnet", progress)
+    params, opt_state, step = fit(one_step, params, opt.init(params), tcfg, out, info,
+                                  ["loss"], desc="meshgraphnet", progress=progress)
     save_model(out / "model", model, params, padding, dict(info, steps=step))
     return model, params

@@ -1,0 +1,132 @@
+"""The one training loop (diffgns.graph.fit): exact resume, logs, schedule, validation,
+SIGTERM and Ctrl-C checkpoints, on a least-squares problem small enough to run in seconds."""
+import csv
+import json
+import os
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from diffgns.graph.fit import (
+    CHECKPOINT,
+    TrainConfig,
+    TrainingInterrupted,
+    fit,
+    learning_rate,
+    load_checkpoint,
+    make_optimizer,
+    step_rng,
+)
+
+W_TRUE = np.array([1.5, -2.0, 0.5])
+
+
+def _problem(tcfg: TrainConfig, hook=None):
+    """(update, params0, opt_state0): linear least squares on batches drawn from the step."""
+    opt = make_optimizer(tcfg)
+
+    @jax.jit
+    def step_fn(p, s, x, y):
+        loss, g = jax.value_and_grad(lambda p: jnp.mean((x @ p["w"] - y) ** 2))(p)
+        u, s = opt.update(g, s, p)
+        return optax.apply_updates(p, u), s, loss
+
+    def update(p, s, step):
+        rng, _ = step_rng(tcfg.seed, step)
+        x = rng.normal(size=(tcfg.batch_size, 3)).astype(np.float32)
+        if hook:
+            hook(step)
+        p, s, loss = step_fn(p, s, x, x @ W_TRUE.astype(np.float32))
+        return p, s, (loss, 2 * loss)
+
+    p0 = {"w": jnp.zeros(3)}
+    return update, p0, opt.init(p0)
+
+
+def _cfg(steps, **kw):
+    return TrainConfig(steps=steps, batch_size=8, lr=0.5, lr_final=0.05, lr_decay_steps=30,
+                       log_every=5, checkpoint_every=10, validate_every=10, **kw)
+
+
+def _fit(out, steps, hook=None, **kw):
+    update, p0, s0 = _problem(_cfg(steps), hook)
+    return fit(update, p0, s0, _cfg(steps), out, {"run": "toy"}, ["loss", "twice"],
+               progress=False, **kw)
+
+
+def test_fit_learns_logs_the_schedule_and_resumes_exactly(tmp_path):
+    p, _, step = _fit(tmp_path / "a", 40)
+    assert step == 40
+    np.testing.assert_allclose(np.asarray(p["w"]), W_TRUE, atol=0.15)
+    rows = list(csv.DictReader((tmp_path / "a" / "train_log.csv").open()))
+    assert list(rows[0]) == ["step", "loss", "twice", "lr", "seconds"]
+    assert [int(r["step"]) for r in rows] == list(range(5, 45, 5))
+    for r in rows:  # the logged rate is the schedule's at that step, floored at lr_final
+        assert float(r["lr"]) == pytest.approx(max(0.5 * 0.1 ** (int(r["step"]) / 30), 0.05),
+                                               rel=5e-3)
+        assert float(r["twice"]) == pytest.approx(2 * float(r["loss"]), rel=1e-4)
+    assert float(rows[-1]["loss"]) < 0.05 * float(rows[0]["loss"])
+    # stopped at 20 (a checkpoint), then resumed to 40: the same parameters, bit for bit
+    _fit(tmp_path / "b", 20)
+    p2, _, _ = _fit(tmp_path / "b", 40)
+    np.testing.assert_array_equal(np.asarray(p2["w"]), np.asarray(p["w"]))
+    assert json.loads((tmp_path / "b" / "checkpoint.json").read_text()) == {"run": "toy",
+                                                                           "step": 40}
+    rows_b = list(csv.DictReader((tmp_path / "b" / "train_log.csv").open()))
+    assert [int(r["step"]) for r in rows_b] == list(range(5, 45, 5))  # one header only
+
+
+def test_learning_rate_schedule_decays_to_the_floor():
+    lr = learning_rate(_cfg(1))
+    assert float(lr(0)) == pytest.approx(0.5)
+    assert float(lr(15)) == pytest.approx(0.5 * 0.1**0.5, rel=1e-5)
+    assert float(lr(30)) == pytest.approx(0.05, rel=1e-5)
+    assert float(lr(1000)) == pytest.approx(0.05, rel=1e-6)
+
+
+def test_validation_runs_on_its_period_and_at_the_end(tmp_path):
+    seen = []
+
+    def validate(p):
+        seen.append(np.asarray(p["w"]).copy())
+        return {"error": float(np.abs(np.asarray(p["w"]) - W_TRUE).max())}
+
+    _fit(tmp_path, 25, validate=validate, show=("error",))
+    lines = [json.loads(s) for s in (tmp_path / "valid_log.jsonl").read_text().splitlines()]
+    assert [d["step"] for d in lines] == [10, 20, 25]
+    assert lines[-1]["error"] < lines[0]["error"]
+
+
+def test_sigterm_checkpoints_the_step_in_flight_and_the_run_resumes(tmp_path):
+    straight, _, _ = _fit(tmp_path / "straight", 30)
+    before = signal.getsignal(signal.SIGTERM)
+    kill = lambda step: step == 12 and os.kill(os.getpid(), signal.SIGTERM)
+    with pytest.raises(TrainingInterrupted) as e:
+        _fit(tmp_path / "run", 30, hook=kill)
+    assert e.value.code == 143 and e.value.step == 13  # the step in flight completed
+    assert signal.getsignal(signal.SIGTERM) == before  # handler restored
+    update, p0, s0 = _problem(_cfg(30))
+    _, _, step = load_checkpoint(tmp_path / "run" / CHECKPOINT, p0, s0)
+    assert step == 13
+    rows = list(csv.DictReader((tmp_path / "run" / "train_log.csv").open()))
+    assert int(rows[-1]["step"]) == 13
+    resumed, _, _ = _fit(tmp_path / "run", 30)
+    np.testing.assert_array_equal(np.asarray(resumed["w"]), np.asarray(straight["w"]))
+
+
+def test_ctrl_c_keeps_the_last_completed_step(tmp_path):
+    def interrupt(step):
+        if step == 7:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _fit(tmp_path, 30, hook=interrupt)
+    update, p0, s0 = _problem(_cfg(30))
+    p, _, step = load_checkpoint(tmp_path / CHECKPOINT, p0, s0)
+    assert step == 7
+    ref, _, _ = _fit(tmp_path / "ref", 7)
+    np.testing.assert_array_equal(np.asarray(p["w"]), np.asarray(ref["w"]))
