@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from diffgns import MPM
+from diffgns.interface import rollout_jit
 from diffgns.metrics import deposit_front, lube_runout
+from diffgns.mpm.solver import max_speed
 from diffgns.scene.builders import column_collapse
 
 WIDTH = 0.1
@@ -15,7 +17,8 @@ def normalised_runout(aspect_ratio, friction_angle=30.0, cells_across=20, frames
     scene = column_collapse(width=WIDTH, aspect_ratio=aspect_ratio,
                             friction_angle=friction_angle, cells_across=cells_across)
     sim = MPM(scene)
-    traj, _, speed = sim.run(sim.params(), sim.init_state(), frames)
+    traj, _ = sim.run(sim.params(), sim.init(), frames)
+    speed = max_speed(traj.velocities)
     assert float(speed[-1]) < 0.05, "the deposit must be at rest"
     front = float(deposit_front(traj.positions[-1], scene.dx, scene.dx))
     return (front - WIDTH) / WIDTH
@@ -33,13 +36,13 @@ def test_runout_follows_lube_law(aspect_ratio):
 def test_runout_decreases_with_friction_angle():
     scene = column_collapse(width=WIDTH, aspect_ratio=1.0, cells_across=8)
     sim = MPM(scene)
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
     phis = jnp.asarray([20.0, 25.0, 30.0, 35.0, 40.0, 45.0], base.E.dtype)
 
     def final_front(phi):
-        pos, _, _, _ = sim.rollout_full(base.replace(friction_angle=phi[None]), state,
-                                        n_frames=300)
-        return pos[-1]
+        frames, _ = rollout_jit(sim, base.replace(friction_angle=phi[None]), state,
+                                n_frames=300)
+        return frames.positions[-1]
 
     finals = jax.lax.map(final_front, phis)
     fronts = [float(deposit_front(x, scene.dx, scene.dx)) for x in finals]

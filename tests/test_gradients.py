@@ -6,6 +6,7 @@ import pytest
 from jax.test_util import check_grads
 
 from diffgns import MPM, Body, Elastic, Rectangle, Scene, Wall, Walls
+from diffgns.interface import rollout_jit
 from diffgns.metrics import runout
 from diffgns.mpm import boundaries, constitutive
 from diffgns.mpm import linalg as la
@@ -54,11 +55,11 @@ def _column_grad(name, value, frames=30, cells=4):
     scene = column_collapse(width=0.1, aspect_ratio=1.0, friction_angle=35.0,
                             cells_across=cells)
     sim = MPM(scene, dtype="float64")
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
 
     def f(v):
         p = base.replace(**{name: jnp.reshape(v, (1,))})
-        pos, _, _, _ = sim.rollout_full(p, state, n_frames=frames, checkpoint=True, block=10)
+        pos = rollout_jit(sim, p, state, n_frames=frames, checkpoint_block=10)[0].positions
         return runout(pos[-1], method="softmax")
 
     g = jax.grad(f)(value)
@@ -81,11 +82,11 @@ def test_sliding_distance_gradient_wrt_wall_mu(x64):
                   gravity=(9.81 * np.sin(th), -9.81 * np.cos(th)),
                   walls=Walls(bottom=Wall("friction", 0.3)))
     sim = MPM(scene, dtype="float64")
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
 
     def dist(mu):
         p = base.replace(wall_mu=base.wall_mu.at[2].set(mu))
-        pos, _, _, _ = sim.rollout_full(p, state, n_frames=40, checkpoint=True)
+        pos = rollout_jit(sim, p, state, n_frames=40)[0].positions
         return jnp.mean(pos[-1, :, 0] - pos[0, :, 0])
 
     g = float(jax.grad(dist)(0.3))
@@ -101,10 +102,10 @@ def test_gradient_finite_through_1000_substeps_of_sand(dtype, x64):
     sim = MPM(scene, dtype=dtype)
     frames = -(-1000 // scene.substeps) + 1
     assert frames * scene.substeps >= 1000
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
 
     def loss(p, s):
-        pos, _, _, _ = sim.rollout_full(p, s, n_frames=frames, checkpoint=True, block=16)
+        pos = rollout_jit(sim, p, s, n_frames=frames, checkpoint_block=16)[0].positions
         return runout(pos[-1], method="softmax") + jnp.mean(pos[-1, :, 1])
 
     gp, gs = jax.grad(loss, argnums=(0, 1))(base, state)
@@ -119,14 +120,14 @@ def test_gradients_wrt_density_poisson_velocity_and_geometry(x64):
     aspect ratio (a vertical stretch of the initial particles and their volumes)."""
     scene = column_collapse(width=0.1, aspect_ratio=1.0, friction_angle=35.0, cells_across=4)
     sim = MPM(scene, dtype="float64")
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
 
     def f(theta):
         p = base.replace(rho=base.rho * theta["rho_scale"], nu=base.nu * 0 + theta["nu"])
         s = state.replace(x=state.x.at[1].multiply(theta["stretch"]),
                           vol=state.vol * theta["stretch"],
                           v=state.v + jnp.stack([theta["vx"], 0.0])[:, None])
-        pos, _, _, _ = sim.rollout_full(p, s, n_frames=20, checkpoint=True, block=10)
+        pos = rollout_jit(sim, p, s, n_frames=20, checkpoint_block=10)[0].positions
         return runout(pos[-1], method="softmax")
 
     theta = {k: jnp.asarray(v) for k, v in

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from diffgns.graph.features import Normalizers
-from diffgns.graph.gns import GNS, GNSConfig
+from diffgns.graph.gns import GNS, GNSConfig, GNSParams
 from diffgns.graph.neighbors import did_overflow, edges
+from diffgns.interface import NeighborOverflowError, rollout, rollout_safe
 
 N, C, STEPS = 30, 5, 7
 # Test-owned jits compile without LLVM optimisation: several times faster for tiny inputs.
@@ -30,17 +31,26 @@ def sim():
     # test_graph_networks; compile time dominates here.
     cfg = GNSConfig(bounds=((0.0, 1.0), (0.0, 1.0)), radius=0.1, latent=16, mp_steps=1,
                     mlp_layers=1, history=C)
-    gns = GNS(cfg, Normalizers.from_metadata(META, cfg.noise_std), compiler_options=FAST)
+    gns = GNS(cfg, Normalizers.from_metadata(META, cfg.noise_std))
     # Inputs stay numpy: jitted calls take them as they are, test-side maths is numpy, and
     # no eager JAX op (each compiled on first use) is needed.
     hist = _history()
     ptype = np.where(np.arange(N) < 3, 3, 6).astype(np.int32)  # 3 kinematic
     material = np.full((N,), 0.6, np.float32)
-    params = gns.init(jax.random.key(0), (hist, ptype, material))
+    params = gns.init_network(jax.random.key(0), (hist, ptype, material))
     nbrs = gns.allocate(hist[:, -1])
     jitted = jax.jit(gns.acceleration, compiler_options=FAST)
     acc = lambda *a: np.asarray(jitted(*a))
     return gns, params, hist, ptype, material, nbrs, acc
+
+
+def _roll(gns, network, hist, ptype, material, n, nbrs=None, kinematic_path=None, **kw):
+    """(positions of the n predicted frames (n, N, 2), the list the valid rollout used)."""
+    state = gns.init(hist, ptype, kinematic_path)
+    if nbrs is not None:
+        state = state._replace(nbrs=nbrs)
+    frames, _, start = rollout_safe(gns, GNSParams(network, material), state, n, **kw)
+    return np.asarray(frames.positions[1:]), start.nbrs
 
 
 def test_acceleration_is_translation_invariant(sim):
@@ -64,7 +74,7 @@ def test_rollout_scan_euler_and_kinematic_hold(sim):
     gns, params, hist, ptype, material, nbrs, acc = sim
     # rollout_safe jits rollout (lax.scan inside) and returns the list it used: the same
     # object means no overflow and no re-allocation.
-    xs, used = gns.rollout_safe(params, hist, ptype, material, STEPS, nbrs)
+    xs, used = _roll(gns, params, hist, ptype, material, STEPS, nbrs)
     assert used is nbrs
     xs = np.asarray(xs)
     assert xs.shape == (STEPS, N, 2) and np.isfinite(xs).all()
@@ -76,7 +86,9 @@ def test_rollout_scan_euler_and_kinematic_hold(sim):
     # Kinematic particles without a prescribed path are held in place.
     np.testing.assert_array_equal(xs[:, :3], np.broadcast_to(hist[:3, -1], (STEPS, 3, 2)))
     assert np.abs(xs[-1, 3:] - hist[3:, -1]).max() > 1e-4  # the others move
-    traj = gns.to_trajectory(hist, xs, ptype, 0.6, frame_dt=2.5e-3)
+    state = gns.init(hist, ptype)
+    frames, _ = rollout(gns, GNSParams(params, 0.6), state, STEPS)
+    traj = gns.trajectory(GNSParams(params, 0.6), frames, ptype)
     assert traj.positions.shape == (STEPS + 1, N, 2) and traj.material.shape == (N,)
     np.testing.assert_allclose(traj.velocities[0], (hist[:, -1] - hist[:, -2]) / 2.5e-3,
                                rtol=1e-5)
@@ -84,12 +96,14 @@ def test_rollout_scan_euler_and_kinematic_hold(sim):
 
 def test_checkpointed_rollout_values_and_gradient(sim):
     gns, params, hist, ptype, material, nbrs, _ = sim
-    xs, _ = gns.rollout_safe(params, hist, ptype, material, STEPS, nbrs)  # cached compile
+    xs, _ = _roll(gns, params, hist, ptype, material, STEPS, nbrs)
+    state = gns.init(hist, ptype)
 
     def loss(p, mat):
         # 4 steps in checkpointed blocks of 3: one scanned block plus a remainder of 1.
-        xs, overflow = gns.rollout(p, hist, ptype, mat, 4, nbrs, checkpoint_block=3)
-        return jnp.sum(xs[-1, :, 0]), (xs, overflow)  # a runout-like scalar
+        frames, _ = rollout(gns, GNSParams(p, mat), state, 4, checkpoint_block=3)
+        xs = frames.positions[1:]
+        return jnp.sum(xs[-1, :, 0]), (xs, jnp.any(frames.overflow))  # runout-like scalar
 
     grad = jax.jit(jax.grad(loss, argnums=(0, 1), has_aux=True), compiler_options=FAST)
     (g_params, g_mat), (xs_ck, overflow) = grad(params, material)
@@ -113,18 +127,17 @@ def test_kinematic_path_and_overflow_reallocation(sim):
     path = np.zeros((STEPS, N, 2), np.float32)
     path[:, :half] = end + drift
 
-    with pytest.raises(RuntimeError, match="overflowing"):  # reported, not hidden
-        gns.rollout_safe(params, hist, ptype, material, STEPS, nbrs, kinematic_path=path,
-                         max_retries=0)
-    xs, big = gns.rollout_safe(params, hist, ptype, material, STEPS, nbrs,
-                               kinematic_path=path)
+    with pytest.raises(NeighborOverflowError, match="overflowing"):  # reported, not hidden
+        _roll(gns, params, hist, ptype, material, STEPS, nbrs, kinematic_path=path,
+              max_retries=0)
+    xs, big = _roll(gns, params, hist, ptype, material, STEPS, nbrs, kinematic_path=path)
     assert big.idx.shape[1] > nbrs.idx.shape[1] and not bool(did_overflow(big))
     np.testing.assert_array_equal(np.asarray(xs)[:, :half], path[:, :half])  # follow path
     # Same result as a rollout with a list that holds every pair from the start.
     everything = gns.allocate(np.broadcast_to(end[0], (N, 2)).astype(np.float32))
     assert everything.idx.shape[1] == N * (N - 1)
-    ref, _ = gns.rollout_safe(params, hist, ptype, material, STEPS, everything,
-                              kinematic_path=path)
+    ref, _ = _roll(gns, params, hist, ptype, material, STEPS, everything,
+                   kinematic_path=path)
     np.testing.assert_allclose(xs, ref, atol=1e-6)
 
 
@@ -141,8 +154,7 @@ def test_rollout_stays_inside_the_domain(sim):
     gns, params, hist, ptype, material, nbrs, _ = sim
     fast = hist.copy()
     fast[:, -1] = fast[:, -2] + np.float32([0.2, -0.3])  # 0.2-0.3 domain widths per frame
-    xs, _ = gns.rollout_safe(params, fast, ptype, material, 5)
-    xs = np.asarray(xs)
+    xs, _ = _roll(gns, params, fast, ptype, material, 5)
     assert np.isfinite(xs).all()
     assert (xs >= 0.0).all() and (xs <= 1.0).all()
     assert np.isclose(xs[..., 1].min(), 0.0)  # pressed against the floor, not through it

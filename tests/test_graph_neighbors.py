@@ -10,8 +10,8 @@ from diffgns.graph.neighbors import (
     did_overflow,
     edge_set,
     edges,
-    update_or_reallocate,
 )
+from diffgns.interface import retry_on_overflow
 
 # Dyadic numbers so that distances of exactly R are exact in float32 (also after the shift
 # of the domain's lower corner (-1, 0) to the origin).
@@ -79,8 +79,10 @@ def test_no_reallocation_when_capacity_suffices(builder):
     x = _points()
     nbrs = builder.allocate(x)
     x2 = x + np.float32(1e-3)
-    new, realloc = update_or_reallocate(builder, x2, nbrs)
-    assert not realloc
+    new, used = retry_on_overflow(lambda nb: builder.update(x2, nb), nbrs,
+                                  lambda nb: bool(did_overflow(nb)),
+                                  lambda nb, _, k: builder.reallocate(x2, nb, k))
+    assert used is nbrs  # no re-allocation
     assert capacity(new) == capacity(nbrs)
     assert edge_set(*edges(new, len(x2), False)) == brute_force_edges(x2, R)
 
@@ -97,8 +99,10 @@ def test_overflow_is_detected_and_fixed(builder):
     dropped = edge_set(*edges(stale, 120, False))
     assert len(dropped) < len(want)  # what would be silently lost without the flag
 
-    fixed, realloc = update_or_reallocate(builder, x_dense, nbrs)
-    assert realloc and not bool(did_overflow(fixed))
+    fixed, used = retry_on_overflow(lambda nb: builder.update(x_dense, nb), nbrs,
+                                    lambda nb: bool(did_overflow(nb)),
+                                    lambda nb, _, k: builder.reallocate(x_dense, nb, k))
+    assert used is not nbrs and not bool(did_overflow(fixed))
     assert capacity(fixed) > capacity(nbrs)
     assert edge_set(*edges(fixed, 120, False)) == want
     # The overflow bit is sticky until re-allocation.

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from diffgns.graph.features import Normalizer
+from diffgns.interface import rollout, rollout_jit
 from diffgns.mesh.meshnet import (
     FLUID,
     INFLOW,
@@ -74,11 +75,13 @@ def test_rollout_holds_boundary_nodes_and_jit_matches_eager():
     pos, cells, types = _grid_mesh()
     g = pad_mesh(pos, cells, types, 32, 128, NU)
     model = _model()
-    params = model.init(jax.random.PRNGKey(0), g)
+    params = model.init_network(jax.random.PRNGKey(0), g)
     v0 = jnp.asarray(np.random.default_rng(0).normal(size=(32, 2)), jnp.float32)
-    vs, ps = jax.jit(model.rollout, static_argnums=3)(params, g, v0, 5)
-    vs_e, _ = model.rollout(params, g, v0, 5)
-    assert vs.shape == (6, 32, 2) and ps.shape == (5, 32)
+    frames, _ = rollout_jit(model, params, model.init(g, v0), n_frames=5)
+    vs, ps = frames.velocity, frames.pressure
+    with jax.disable_jit():
+        vs_e = rollout(model, params, model.init(g, v0), 5)[0].velocity
+    assert vs.shape == (6, 32, 2) and ps.shape == (6, 32)
     np.testing.assert_allclose(np.asarray(vs), np.asarray(vs_e), rtol=1e-4, atol=1e-5)
     held = ~np.asarray(g.predicted)
     np.testing.assert_array_equal(np.asarray(vs)[:, held], np.broadcast_to(
@@ -90,7 +93,7 @@ def test_padding_does_not_change_predictions():
     pos, cells, types = _grid_mesh()
     model = _model()
     g1, g2 = pad_mesh(pos, cells, types, 32, 128, NU), pad_mesh(pos, cells, types, 48, 200, NU)
-    params = model.init(jax.random.PRNGKey(1), g1)
+    params = model.init_network(jax.random.PRNGKey(1), g1)
     v = np.random.default_rng(1).normal(size=(len(pos), 2)).astype(np.float32)
     pad = lambda n: jnp.asarray(np.concatenate([v, np.zeros((n - len(pos), 2), np.float32)]))
     a, pa = model.predict(params, g1, pad(32))
@@ -170,11 +173,11 @@ def test_push_forward_unrolls_the_model_without_gradient(tmp_path):
     pos, cells, types = _grid_mesh()
     g = pad_mesh(pos, cells, types, 32, 128, NU)
     model = _model()
-    params = model.init(jax.random.PRNGKey(0), g)
+    params = model.init_network(jax.random.PRNGKey(0), g)
     v = jnp.asarray(np.random.default_rng(2).normal(size=(32, 2)), jnp.float32)
     np.testing.assert_array_equal(np.asarray(mesh_train._pushed(model, params, g, v, 0)),
                                   np.asarray(v))
-    two = model.step(params, g, model.step(params, g, v, v)[0], v)[0]
+    two = model.advance(params, g, model.advance(params, g, v, v)[0], v)[0]
     np.testing.assert_allclose(np.asarray(mesh_train._pushed(model, params, g, v, 2)),
                                np.asarray(two), rtol=1e-5, atol=1e-6)
     # the unrolled frames carry no gradient: d/dparams of the pushed state is zero
@@ -197,7 +200,7 @@ def test_viscosity_is_an_input_and_a_graph_without_it_is_rejected():
     pos, cells, types = _grid_mesh()
     model = _model()
     g = pad_mesh(pos, cells, types, 32, 128, NU)
-    params = model.init(jax.random.PRNGKey(3), g)
+    params = model.init_network(jax.random.PRNGKey(3), g)
     v = jnp.asarray(np.random.default_rng(3).normal(size=(32, 2)), jnp.float32)
     thicker = pad_mesh(pos, cells, types, 32, 128, 3 * NU)
     a, b = model.predict(params, g, v)[0], model.predict(params, thicker, v)[0]
@@ -239,7 +242,7 @@ def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_pat
     new = MeshNet(new_cfg, dataclasses.replace(old.stats, viscosity=mesh_train.viscosity_stats(
         trajs)))
     graph = mesh_train.graph_of(trajs[1], tuple(info["padding"]))
-    template = new.init(jax.random.PRNGKey(0), graph)
+    template = new.init_network(jax.random.PRNGKey(0), graph)
     params, stats = mesh_train.fine_tune_start(tmp_path / "old" / "model", new_cfg, template,
                                                new.stats)
     grown = MeshNet(new_cfg, stats)

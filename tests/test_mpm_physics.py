@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from diffgns import MPM, Body, Elastic, Rectangle, Sand, Scene, Wall, Walls
+from diffgns.interface import rollout_jit
 from diffgns.mpm.shape import stencil
 from diffgns.mpm.transfer import p2g
 
@@ -18,7 +19,7 @@ def elastic_block(gravity=(0.0, -9.81), velocity=(0.0, 0.0), domain=((0, 1), (0,
 def test_mass_transfer_exact():
     """P2G partitions mass exactly: grid mass equals particle mass."""
     sim = MPM(elastic_block())
-    p, s = sim.params(), sim.init_state()
+    p, s = sim.params(), sim.init()
     s = s.replace(x=s.x + 0.003 * jnp.sin(37 * s.x[::-1]))  # irregular positions
     X = (s.x - jnp.asarray(sim.origin, s.x.dtype)[:, None]) / sim.dx
     idx, w, dpos = stencil(X, sim.grid_shape)
@@ -32,11 +33,11 @@ def test_momentum_conserved_in_free_flight(x64):
     """No gravity, no wall contact: linear momentum of a spinning, moving body is conserved."""
     scene = elastic_block(gravity=(0.0, 0.0), velocity=(0.3, -0.2))
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
+    p, s = sim.params(), sim.init()
     c = s.x.mean(1, keepdims=True)
     spin = 2.0 * jnp.stack([-(s.x[1] - c[1]), s.x[0] - c[0]])
     s = s.replace(v=s.v + spin)
-    traj = sim.rollout(p, s, 20)
+    traj = sim.run(p, s, 20, check=False)[0]
     m = np.asarray(sim.mass(p, s))
     mom = np.einsum("n,tnd->td", m, np.asarray(traj.velocities))
     tol = 1e-12 * m.sum()
@@ -48,7 +49,7 @@ def test_momentum_conserved_in_free_flight(x64):
 def test_free_fall(dtype, x64):
     scene = elastic_block(rect=(0.4, 0.7, 0.5, 0.8))
     sim = MPM(scene, dtype=dtype)
-    traj = sim.rollout(sim.params(), sim.init_state(), 100)
+    traj = sim.run(sim.params(), sim.init(), 100, check=False)[0]
     y = np.asarray(traj.positions)[:, :, 1].mean(1)
     t = np.asarray(traj.times)
     drop = y[0] - y
@@ -65,7 +66,7 @@ def _sliding_block(theta_deg, mu, frames=80):
         domain=((0.0, 1.0), (0.0, 0.2)), dx=0.01,
         walls=Walls(bottom=Wall("friction", mu)))
     sim = MPM(scene)
-    traj = sim.rollout(sim.params(), sim.init_state(), frames)
+    traj = sim.run(sim.params(), sim.init(), frames, check=False)[0]
     x = np.asarray(traj.positions)[:, :, 0].mean(1)
     return np.asarray(traj.times), x - x[0], g * (np.sin(th) - mu * np.cos(th))
 
@@ -90,7 +91,7 @@ def test_geostatic_stress():
                   walls=Walls(bottom=Wall("sticky")))
     sim = MPM(scene)
     p = sim.params()
-    _, state, _ = sim.run(p, sim.init_state(), 200)
+    _, state = sim.run(p, sim.init(), 200)
     sig = np.asarray(sim.cauchy_stress(p, state))[:, 1, 1]
     y = np.asarray(state.x[1])
     slope, base = np.polyfit(h - y, -sig, 1)
@@ -101,15 +102,15 @@ def test_geostatic_stress():
 def test_jit_equals_eager_and_no_recompilation():
     scene = elastic_block()
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
+    p, s = sim.params(), sim.init()
     eager = s
     with jax.disable_jit():
         for _ in range(3):
             eager = sim.substep(p, eager)
     jitted = jax.jit(lambda p, s: sim.substep(p, sim.substep(p, sim.substep(p, s))))(p, s)
     np.testing.assert_allclose(np.asarray(jitted.x), np.asarray(eager.x), rtol=1e-6, atol=1e-7)
-    sim.rollout(p, s, 3)
-    n = sim.rollout_full._cache_size()
+    sim.run(p, s, 3, check=False)[0]
+    n = rollout_jit._cache_size()
     p2 = p.replace(E=p.E * 1.1, gravity=p.gravity * 0.5)
-    sim.rollout(p2, s.replace(v=s.v + 0.1), 3)
-    assert sim.rollout_full._cache_size() == n
+    sim.run(p2, s.replace(v=s.v + 0.1), 3, check=False)[0]
+    assert rollout_jit._cache_size() == n

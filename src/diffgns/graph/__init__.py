@@ -7,12 +7,12 @@ from diffgns.graph.features import (
     random_walk_noise,
     target_acceleration,
 )
-from diffgns.graph.gns import GNS, GNSConfig
-from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges, update_or_reallocate
+from diffgns.graph.gns import GNS, GNSConfig, GNSParams, GNSState
+from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
 from diffgns.graph.networks import MLP, EncodeProcessDecode, init_params
 
 __all__ = [
-    "GNS", "GNSConfig", "MLP", "EncodeProcessDecode", "NeighborBuilder", "Normalizer",
-    "Normalizers", "did_overflow", "edge_features", "edges", "init_params", "node_features",
-    "random_walk_noise", "target_acceleration", "update_or_reallocate",
+    "GNS", "GNSConfig", "GNSParams", "GNSState", "MLP", "EncodeProcessDecode", "NeighborBuilder",
+    "Normalizer", "Normalizers", "did_overflow", "edge_features", "edges", "init_params",
+    "node_features", "random_walk_noise", "target_acceleration",
 ]

@@ -10,15 +10,21 @@ accelerations displacements per frame^2 (m/frame^2). One GNS step advances one f
 Kinematic particles (type 3) are not integrated: they are set to a prescribed position when
 one is given and otherwise held where they are.
 
-Everything is functional: :class:`GNSConfig` is static (frozen, hashable), the network
-params are a pytree, the neighbour list is a jax-md pytree carried through ``lax.scan``.
-Overflow of the neighbour list inside a rollout is reported, never hidden; the caller
-re-allocates outside ``jit`` and redoes the rollout (:meth:`GNS.rollout_safe` does that).
+The GNS is a :class:`diffgns.interface.Simulator`::
+
+    state = gns.init(history, particle_type)          # allocates the neighbour list
+    params = GNSParams(network, material)             # weights and tan(phi) per node
+    frames, final = rollout(gns, params, state, n)    # diffgns.rollout
+
+:class:`GNSConfig` is static (frozen, hashable); the network params are a pytree; the
+jax-md neighbour list travels in :class:`GNSState`. Its overflow is reported per frame
+(``ParticleFrame.overflow``), never hidden: :func:`diffgns.interface.rollout_safe`
+re-allocates outside ``jit`` (:meth:`GNS.reallocate`) and redoes the rollout.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -27,9 +33,10 @@ import numpy as np
 from diffgns.graph.features import Normalizers, edge_features, node_features
 from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
 from diffgns.graph.networks import EncodeProcessDecode, init_params
+from diffgns.interface import ParticleFrame
 from diffgns.trajectory import KINEMATIC, Trajectory
 
-__all__ = ["GNS", "GNSConfig"]
+__all__ = ["GNS", "GNSConfig", "GNSParams", "GNSState"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +92,38 @@ class GNSConfig:
             raise ValueError(f"invalid GNSConfig field(s) {bad}: {self}")
 
 
+class GNSParams(NamedTuple):
+    """What a GNS rollout may vary or fit.
+
+    Attributes:
+        network: the network weights (from :meth:`GNS.init_network` or a model folder).
+        material: (N,) or scalar raw material feature, tan(friction angle) (differentiable).
+    """
+
+    network: Any
+    material: jax.Array
+
+
+class GNSState(NamedTuple):
+    """State of a GNS rollout.
+
+    Attributes:
+        history: (N, C+1, d) positions in m, oldest first; ``history[:, -1]`` is the current
+            frame.
+        nbrs: jax-md neighbour list (capacity fixed at :meth:`GNS.init`, overflow flag sticky).
+        particle_type: (N,) int32.
+        kinematic: (K, N, d) prescribed positions of the kinematic particles for the next
+            K frames (frame ``t + 1`` uses ``kinematic[t]``), or None: they are held.
+        t: int32 scalar, frames advanced since :meth:`GNS.init`.
+    """
+
+    history: jax.Array
+    nbrs: Any
+    particle_type: jax.Array
+    kinematic: jax.Array | None
+    t: jax.Array
+
+
 class GNS:
     """Particle GNS bound to a config and a normaliser; methods are pure and jit-friendly.
 
@@ -92,26 +131,21 @@ class GNS:
         config: :class:`GNSConfig`.
         normalizer: :class:`~diffgns.graph.features.Normalizers` (velocity m/frame,
             acceleration m/frame^2), usually ``Normalizers.from_metadata(meta, noise_std)``.
-        compiler_options: optional XLA options for the internal ``jit`` of
-            :meth:`rollout_safe`, e.g. ``{"xla_backend_optimization_level": 0}`` to compile
-            several times faster for short runs (tests, debugging).
+        frame_dt: seconds per GNS frame (for the velocities it observes, m/s).
     """
 
-    def __init__(self, config: GNSConfig, normalizer: Normalizers,
-                 compiler_options: dict | None = None):
+    def __init__(self, config: GNSConfig, normalizer: Normalizers, frame_dt: float = 2.5e-3):
         self.config = config
+        self.frame_dt = float(frame_dt)
         self.normalizer = normalizer
         self.network = EncodeProcessDecode(
             latent=config.latent, mp_steps=config.mp_steps, mlp_layers=config.mlp_layers,
             n_types=config.n_types, type_embed=config.type_embed, attention=config.attention)
         self.neighbors = NeighborBuilder(config.bounds, config.radius,
                                          config.capacity_multiplier)
-        self._rollout_flags_jit = jax.jit(self._rollout_flags,
-                                          static_argnames=("n_steps", "checkpoint_block"),
-                                          compiler_options=compiler_options)
 
     # ----------------------------------------------------------------- network
-    def init(self, key: jax.Array, example_inputs) -> dict:
+    def init_network(self, key: jax.Array, example_inputs) -> dict:
         """Network params for ``example_inputs = (history (N, C+1, 2), particle_type (N,)
         [, material (N,)])``; a self-edge graph is used (param shapes do not depend on E).
 
@@ -161,145 +195,82 @@ class GNS:
 
     # -------------------------------------------------------------- simulation
     def allocate(self, x: jax.Array, extra_capacity: int = 0):
-        """Neighbour list for positions ``x`` (N, 2) (outside jit)."""
+        """Neighbour list for positions ``x`` (N, d) (outside jit)."""
         return self.neighbors.allocate(x, extra_capacity)
 
-    def step(self, params, history, particle_type, material, nbrs, kinematic_position=None):
-        """Advance one frame.
+    def init(self, history, particle_type, kinematic_path=None, extra_capacity: int = 0
+             ) -> GNSState:
+        """Initial state (outside jit: allocates the neighbour list at the current frame).
 
         Args:
-            history: (N, C+1, 2) positions in m; ``history[:, -1]`` is the current frame.
-            nbrs: jax-md neighbour list; it is updated to the current positions here.
-            kinematic_position: optional (N, 2) prescribed next positions; used for the
-                kinematic particles only. Without it they keep their current position.
+            history: (N, C+1, d) positions in m, oldest first.
+            particle_type: (N,) int.
+            kinematic_path: optional (K, N, d) prescribed positions of the kinematic particles
+                for the next K frames (a rollout may then run at most K frames).
+            extra_capacity: edge slots per particle above the list's head-room.
+        """
+        history = jnp.asarray(history)
+        C = self.config.history
+        if history.ndim != 3 or history.shape[1] != C + 1:
+            raise ValueError(f"history must be (N, {C + 1}, d), got {history.shape}")
+        nbrs = self.allocate(history[:, -1], extra_capacity)
+        kin = None if kinematic_path is None else jnp.asarray(kinematic_path, history.dtype)
+        return GNSState(history, nbrs, jnp.asarray(particle_type, jnp.int32), kin,
+                        jnp.zeros((), jnp.int32))
 
-        Returns:
-            ``(next_positions (N, 2), nbrs)`` with ``nbrs`` the list used for this step;
-            ``did_overflow(nbrs)`` tells whether edges were dropped (sticky).
+    def advance(self, network, history, particle_type, material, nbrs, kinematic_next=None):
+        """Next positions (N, d) of one semi-implicit Euler step, and the updated list.
+
+        ``nbrs`` is updated to the current positions here; ``did_overflow(nbrs)`` tells
+        whether edges were dropped (sticky). Kinematic particles go to ``kinematic_next``
+        (N, d) when given, else stay where they are.
         """
         n = history.shape[0]
         x = history[:, -1]
         nbrs = self.neighbors.update(x, nbrs)
         senders, receivers, mask = edges(nbrs, n)
-        acc = self.acceleration(params, history, particle_type, material, senders,
+        acc = self.acceleration(network, history, particle_type, material, senders,
                                 receivers, mask)
         x_next = x + (x - history[:, -2]) + acc
         if self.config.clamp_to_bounds:
             lo = jnp.asarray([b[0] for b in self.config.bounds], x_next.dtype)
             hi = jnp.asarray([b[1] for b in self.config.bounds], x_next.dtype)
             x_next = jnp.clip(x_next, lo, hi)
-        target = x if kinematic_position is None else kinematic_position
+        target = x if kinematic_next is None else kinematic_next
         x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
-        return x_next, nbrs
+        return x_next.astype(history.dtype), nbrs
 
-    def _scan(self, params, particle_type, material, carry, kin, length):
-        def body(c, k):
-            hist, nbrs = c
-            x_next, nbrs = self.step(params, hist, particle_type, material, nbrs, k)
-            hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
-            return (hist, nbrs), (x_next, did_overflow(nbrs))
-        return jax.lax.scan(body, carry, kin, length=length)
+    def step(self, params: GNSParams, state: GNSState) -> GNSState:
+        """Advance one frame (pure)."""
+        kin = None
+        if state.kinematic is not None:
+            kin = jax.lax.dynamic_index_in_dim(state.kinematic, state.t, keepdims=False)
+        material = jnp.broadcast_to(jnp.asarray(params.material, state.history.dtype),
+                                    state.particle_type.shape)
+        x_next, nbrs = self.advance(params.network, state.history, state.particle_type,
+                                    material, state.nbrs, kin)
+        hist = jnp.concatenate([state.history[:, 1:], x_next[:, None]], axis=1)
+        return state._replace(history=hist, nbrs=nbrs, t=state.t + 1)
 
-    @staticmethod
-    def _kinematic_path(initial_history, n_steps, kinematic_path):
-        """Held kinematic particles == a constant prescribed path (one code path to trace)."""
-        if kinematic_path is not None:
-            return kinematic_path
-        x0 = initial_history[:, -1]
-        return jnp.broadcast_to(x0, (n_steps,) + x0.shape)
+    def observe(self, state: GNSState) -> ParticleFrame:
+        """Positions (N, d) m, velocities (backward difference, m/s), overflow flag."""
+        x = state.history[:, -1]
+        v = (x - state.history[:, -2]) / self.frame_dt
+        return ParticleFrame(x, v, did_overflow(state.nbrs))
 
-    def _rollout_flags(self, params, initial_history, particle_type, material, n_steps, nbrs,
-                       checkpoint_block=None, kinematic_path=None):
-        """Rollout returning ``(positions (T, N, 2), overflowed (T,) bool per step)``."""
-        kinematic_path = self._kinematic_path(initial_history, n_steps, kinematic_path)
-        carry = (initial_history, nbrs)
-        if not checkpoint_block or checkpoint_block >= n_steps:
-            scan = self._scan
-            if checkpoint_block:
-                scan = jax.checkpoint(scan, static_argnums=(5,))
-            _, (xs, flags) = scan(params, particle_type, material, carry, kinematic_path,
-                                  n_steps)
-            return xs, flags
-        block = int(checkpoint_block)
-        n_blocks, rem = divmod(n_steps, block)
-        scan_ckpt = jax.checkpoint(self._scan, static_argnums=(5,))
-        kin_main = kinematic_path[: n_blocks * block].reshape(
-            (n_blocks, block) + kinematic_path.shape[1:])
-        kin_tail = kinematic_path[n_blocks * block:]
+    def reallocate(self, state: GNSState, frames: ParticleFrame, first_bad: int,
+                   attempt: int) -> GNSState:
+        """``state`` with a larger neighbour list (outside jit), sized at the last valid
+        frame before the overflow at frame ``first_bad`` of ``frames``."""
+        x = frames.positions[max(int(first_bad) - 1, 0)]
+        return state._replace(nbrs=self.neighbors.reallocate(x, state.nbrs, attempt))
 
-        def outer(c, k):
-            return scan_ckpt(params, particle_type, material, c, k, block)
-
-        carry, (xs, flags) = jax.lax.scan(outer, carry, kin_main, length=n_blocks)
-        xs = xs.reshape((n_blocks * block,) + xs.shape[2:])
-        flags = flags.reshape(-1)
-        if rem:
-            _, (xt, ft) = scan_ckpt(params, particle_type, material, carry, kin_tail, rem)
-            xs, flags = jnp.concatenate([xs, xt]), jnp.concatenate([flags, ft])
-        return xs, flags
-
-    def rollout(self, params, initial_history, particle_type, material, n_steps: int, nbrs,
-                checkpoint_block: int | None = None, kinematic_path=None):
-        """Roll out ``n_steps`` frames with ``lax.scan`` (jit with ``n_steps`` and
-        ``checkpoint_block`` static).
-
-        Args:
-            initial_history: (N, C+1, 2) positions in m.
-            particle_type: (N,) int; material: (N,) or scalar tan phi (differentiable).
-            n_steps: number of frames to predict.
-            nbrs: allocated neighbour list (capacity is fixed for the whole rollout).
-            checkpoint_block: if set, ``jax.checkpoint`` blocks of this many steps, so
-                reverse mode stores only the block boundaries (memory ~ n_steps / block).
-            kinematic_path: optional (n_steps, N, 2) prescribed positions of the kinematic
-                particles for each predicted frame.
-
-        Returns:
-            ``(positions (n_steps, N, 2), overflow)``: ``overflow`` is a bool scalar, True if
-            the neighbour list overflowed at any step (results then invalid: re-allocate
-            outside jit with more capacity and redo, see :meth:`rollout_safe`).
-        """
-        xs, flags = self._rollout_flags(params, initial_history, particle_type, material,
-                                        n_steps, nbrs, checkpoint_block, kinematic_path)
-        return xs, jnp.any(flags)
-
-    def rollout_safe(self, params, initial_history, particle_type, material, n_steps: int,
-                     nbrs=None, checkpoint_block: int | None = None, kinematic_path=None,
-                     max_retries: int = 5):
-        """Jitted :meth:`rollout` that re-allocates on overflow and redoes (outside jit).
-
-        On overflow the list is re-allocated at the positions of the first overflowing frame
-        (computed correctly, before the overflow), with growing extra capacity on repeated
-        failures. Returns ``(positions (n_steps, N, 2), nbrs)``; the returned list is large
-        enough for this rollout, so a following ``jax.grad`` of :meth:`rollout` can reuse it.
-        """
-        x0 = initial_history[:, -1]
-        n = x0.shape[0]
-        if nbrs is None:
-            nbrs = self.allocate(x0)
-        kinematic_path = self._kinematic_path(initial_history, n_steps, kinematic_path)
-        for attempt in range(max_retries + 1):
-            xs, flags = self._rollout_flags_jit(params, initial_history, particle_type,
-                                                material, n_steps, nbrs, checkpoint_block,
-                                                kinematic_path)
-            flags = np.asarray(flags)
-            if not flags.any():
-                return xs, nbrs
-            k = int(np.argmax(flags))
-            x_k = x0 if k == 0 else xs[k - 1]
-            extra = attempt * max(1, math.ceil(nbrs.idx.shape[1] / (4 * n)))
-            nbrs = self.allocate(x_k, extra_capacity=extra)
-        raise RuntimeError(f"neighbour list still overflowing after {max_retries} "
-                           "re-allocations; raise capacity_multiplier")
-
-    def to_trajectory(self, initial_history, positions, particle_type, material,
-                      frame_dt: float = 2.5e-3) -> Trajectory:
-        """Trajectory of the current frame of ``initial_history`` followed by ``positions``.
-
-        Velocities (m/s) are backward differences divided by ``frame_dt`` (s).
-        """
-        pos = jnp.concatenate([initial_history[:, -2:].swapaxes(0, 1), positions])
-        return Trajectory(positions=pos[1:], velocities=jnp.diff(pos, axis=0) / frame_dt,
+    def trajectory(self, params: GNSParams, frames: ParticleFrame, particle_type
+                   ) -> Trajectory:
+        """:class:`Trajectory` of stacked frames (material broadcast per particle)."""
+        particle_type = jnp.asarray(particle_type)
+        return Trajectory(positions=frames.positions, velocities=frames.velocities,
                           particle_type=particle_type,
-                          material=jnp.broadcast_to(jnp.asarray(material), particle_type.shape),
-                          frame_dt=frame_dt, bounds=self.config.bounds)
-
+                          material=jnp.broadcast_to(jnp.asarray(params.material),
+                                                    particle_type.shape),
+                          frame_dt=self.frame_dt, bounds=self.config.bounds)

@@ -24,7 +24,9 @@ cell list to ``capacity_multiplier`` times what the given positions need. :meth:
 (jit-safe) cannot resize; if a configuration needs more, jax-md sets an overflow bit in
 ``nbrs.error`` (sticky across updates), read by :func:`did_overflow`. Edges beyond the
 capacity are then missing, so the caller must re-allocate outside ``jit`` and redo the
-step (:func:`update_or_reallocate`). Overflow is never silent as long as the flag is checked.
+step (:meth:`NeighborBuilder.reallocate` under
+:func:`diffgns.interface.retry_on_overflow`). Overflow is never silent as long as the flag
+is checked.
 
 Particles somewhat outside the domain are still handled correctly (cell indices wrap around,
 which only makes the cell list less efficient), but many particles far outside will overflow
@@ -33,6 +35,7 @@ the cell list, which is again reported by the flag.
 from __future__ import annotations
 
 import contextlib
+import math
 import warnings
 
 import jax
@@ -42,7 +45,6 @@ from jax_md import partition, space
 
 __all__ = [
     "NeighborBuilder", "brute_force_edges", "capacity", "did_overflow", "edge_set", "edges",
-    "update_or_reallocate",
 ]
 
 
@@ -99,6 +101,19 @@ class NeighborBuilder:
         with _jax_md_x64_scatter_warning_ignored():
             return fns.allocate(x, extra_capacity=int(extra_capacity))
 
+    def reallocate(self, x: jax.Array, nbrs: partition.NeighborList, attempt: int = 0
+                   ) -> partition.NeighborList:
+        """A new list for positions ``x`` after ``nbrs`` overflowed (outside jit).
+
+        The one growth rule of the package: the first re-allocation (``attempt = 0``) sizes
+        the list for ``x`` with the usual head-room; every further attempt adds
+        ``ceil(K / 4N)`` edge slots per particle (and cell slots) more, K being the old
+        capacity, so repeated overflows grow the list geometrically enough to end.
+        """
+        n = int(x.shape[0])
+        extra = int(attempt) * max(1, math.ceil(capacity(nbrs) / (4 * n)))
+        return self.allocate(x, extra_capacity=extra)
+
     def update(self, x: jax.Array, nbrs: partition.NeighborList) -> partition.NeighborList:
         """Rebuild the list for positions ``x`` (N, 2) with the same capacity (jit-safe)."""
         with _jax_md_x64_scatter_warning_ignored():
@@ -118,21 +133,6 @@ def _jax_md_x64_scatter_warning_ignored():
 def did_overflow(nbrs: partition.NeighborList) -> jax.Array:
     """Bool scalar array: the edge buffer or the cell list overflowed (jit-safe, sticky)."""
     return nbrs.did_buffer_overflow != 0
-
-
-def update_or_reallocate(builder: NeighborBuilder, x: jax.Array, nbrs: partition.NeighborList
-                         ) -> tuple[partition.NeighborList, bool]:
-    """Update ``nbrs`` for positions ``x``; on overflow re-allocate for ``x`` and redo.
-
-    Use outside ``jit``. Returns ``(nbrs, reallocated)``; the returned list never overflowed.
-    """
-    new = builder.update(x, nbrs)
-    if not bool(did_overflow(new)):
-        return new, False
-    new = builder.allocate(x)
-    if bool(did_overflow(new)):  # pragma: no cover - allocation sizes from x itself
-        raise RuntimeError("neighbour list overflowed right after allocation")
-    return new, True
 
 
 def edges(nbrs: partition.NeighborList, n_particles: int, self_edges: bool = True

@@ -2,7 +2,7 @@
 
     hyb = Hybrid(mpm, gns, gns_params, frame_stride=2, factor=4,
                  schedule=Schedule(warmup=5, gns_frames=10, mpm_frames=2))
-    out = hyb.run(mpm.params(), mpm.init_state(), n_frames=125)
+    out = hyb.run(mpm.params(), mpm.init(), n_frames=125)
 
 Time runs in GNS frames (``frame_stride`` MPM frames each). The first ``warmup`` frames are
 MPM frames (they give the GNS its velocity history); then GNS segments of up to
@@ -14,8 +14,9 @@ per unit mass) over a frame and dE_mpm the change in the last MPM frame. The MPM
 dissipation rate varies slowly, so a GNS that dissipates much faster or slower (or creates
 energy) is drifting from the physics.
 
-The whole loop is one ``lax.scan`` over frames whose body is a ``lax.cond`` between a GNS
-frame and ``frame_stride`` MPM frames; the node history is a rolling window fed by whichever
+The hybrid is a :class:`diffgns.interface.Simulator`: its ``step`` is a ``lax.cond`` between a
+GNS frame and ``frame_stride`` MPM frames, and :func:`diffgns.interface.rollout` scans it;
+the node history is a rolling window fed by whichever
 simulator ran, and every GNS frame also moves the MPM particles (see
 :mod:`diffgns.hybrid.handoff`), so either simulator can take over at any frame. Blocks of
 frames are ``jax.checkpoint``-ed for reverse mode. ``jax.grad`` with respect to the MPM
@@ -24,7 +25,7 @@ parameters flows through the MPM frames and through the GNS material feature (ta
 from __future__ import annotations
 
 import dataclasses
-import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +42,7 @@ from diffgns.hybrid.handoff import (
     particles_from_nodes,
     specific_energy,
 )
+from diffgns.interface import rollout_safe
 
 GNS_MODE, MPM_MODE = 0, 1
 
@@ -102,6 +104,51 @@ class Schedule:
         return f"hybrid K={self.mpm_frames} {tag} ({self.handoff}{rigid})"
 
 
+class HybridParams(NamedTuple):
+    """Parameters of a hybrid rollout: the MPM's (friction angle, ...) and the GNS weights."""
+
+    mpm: Any
+    network: Any
+
+
+class HybridState(NamedTuple):
+    """State of a hybrid rollout.
+
+    Attributes:
+        mpm: the MPM state (particles); GNS frames move it too.
+        history: (M, C+1, 2) node positions, m, oldest first.
+        nbrs: the GNS neighbour list of the nodes.
+        indicator: energy-balance deviation accumulated in the current GNS segment, J/kg.
+        rate: change of specific mechanical energy in the last MPM frame, J/kg.
+        mode: int32, the simulator of the next frame (GNS_MODE or MPM_MODE).
+        count: int32, frames run in the current segment.
+        used_mpm: bool, the last frame was an MPM frame.
+        t: int32, frames advanced since :meth:`Hybrid.init`.
+    """
+
+    mpm: Any
+    history: jax.Array
+    nbrs: Any
+    indicator: jax.Array
+    rate: jax.Array
+    mode: jax.Array
+    count: jax.Array
+    used_mpm: jax.Array
+    t: jax.Array
+
+
+class HybridFrame(NamedTuple):
+    """What the hybrid observes at a frame: particles (N, 2) m and m/s, nodes (M, 2) m, the
+    simulator of the frame just run (1 = MPM), the indicator (J/kg) and the overflow flag."""
+
+    positions: jax.Array
+    velocities: jax.Array
+    nodes: jax.Array
+    mode: jax.Array
+    indicator: jax.Array
+    overflow: jax.Array
+
+
 @dataclasses.dataclass
 class HybridResult:
     """Output of :meth:`Hybrid.run` (frames 0..T, T = n_frames, in GNS frames).
@@ -125,18 +172,26 @@ class HybridResult:
 
 
 class Hybrid:
-    """A hybrid simulator for one MPM scene and one trained GNS (static parts)."""
+    """A hybrid simulator for one MPM scene and one trained GNS (static parts).
 
-    def __init__(self, mpm, gns: GNS, gns_params, frame_stride: int, factor: int,
-                 schedule: Schedule = Schedule(), checkpoint_block: int | None = None):
+    Args:
+        mpm: the :class:`~diffgns.mpm.MPM` of the scene.
+        gns: the trained :class:`~diffgns.graph.gns.GNS` (its weights go in
+            :class:`HybridParams`).
+        frame_stride: MPM frames per GNS frame.
+        factor: particles per node (coarse-graining of the initial particles).
+        schedule: :class:`Schedule`.
+    """
+
+    def __init__(self, mpm, gns: GNS, frame_stride: int, factor: int,
+                 schedule: Schedule = Schedule()):
         if gns.config.history > schedule.warmup and schedule.gns_frames > 0:
             raise ValueError(f"Schedule.warmup = {schedule.warmup} frames is shorter than the "
                              f"GNS history ({gns.config.history}): the first GNS frame would "
                              "see a made-up velocity history")
-        self.mpm, self.gns, self.gns_params = mpm, gns, gns_params
+        self.mpm, self.gns = mpm, gns
         self.stride, self.schedule = int(frame_stride), schedule
-        self.checkpoint_block = checkpoint_block
-        x0 = np.asarray(mpm.init_state().x).T
+        x0 = np.asarray(mpm.init().x).T
         cid = coarse_grain_map(x0, factor)
         self.cluster = jnp.asarray(cid, jnp.int32)
         self.counts = jnp.asarray(np.bincount(cid), mpm.dtype)
@@ -147,7 +202,6 @@ class Hybrid:
         self.frame_dt = float(mpm.scene.frame_dt) * self.stride
         self.lo = jnp.asarray(mpm.lo, mpm.dtype)
         self.hi = jnp.asarray(mpm.hi, mpm.dtype)
-        self._run = jax.jit(self._rollout, static_argnames=("n_frames",))
 
     @property
     def n_nodes(self) -> int:
@@ -161,55 +215,29 @@ class Hybrid:
         """(M,) GNS material feature (tan phi) of every node."""
         return self.mpm.material_feature(mpm_params)[self.first]
 
-    # ---------------------------------------------------------------- frames
-    def _energy_change(self, params, hist, x_next):
-        """Change of mechanical energy per unit mass (J/kg) over the frame to ``x_next``."""
-        g = params.gravity.astype(hist.dtype)
-        return jax.lax.stop_gradient(
-            specific_energy(hist[:, -1], x_next, self.counts, g, self.frame_dt)
-            - specific_energy(hist[:, -2], hist[:, -1], self.counts, g, self.frame_dt))
+    # ------------------------------------------------------------- interface
+    def init(self, mpm_state, extra_capacity: int = 0) -> HybridState:
+        """Initial state from an MPM state (outside jit: allocates the node neighbour list).
 
-    def _mpm_frame(self, params, carry):
-        state, hist, nbrs, indicator, rate = carry
-        ckpt = self.checkpoint_block is not None
-        for _ in range(self.stride):
-            state = self.mpm.frame(params, state, checkpoint=ckpt)
-        x_next = self.nodes(state)
-        rate = self._energy_change(params, hist, x_next)
-        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
-        return (state, hist, nbrs, jnp.zeros_like(indicator), rate), jnp.zeros((), bool)
+        The node history starts as the initial nodes repeated; the warm-up MPM frames
+        replace it before the first GNS frame.
+        """
+        x = self.nodes(mpm_state)
+        hist = jnp.repeat(x[:, None], self.gns.config.history + 1, axis=1)
+        zero = jnp.zeros((), mpm_state.x.dtype)
+        i0 = jnp.asarray(0, jnp.int32)
+        return HybridState(mpm_state, hist, self.gns.allocate(x, extra_capacity), zero, zero,
+                           jnp.asarray(MPM_MODE, jnp.int32), i0, jnp.asarray(True), i0)
 
-    def _gns_frame(self, params, gns_params, material, carry):
-        state, hist, nbrs, indicator, rate = carry
-        x = hist[:, -1]
-        x_next, nbrs = self.gns.step(gns_params, hist, self.node_type, material, nbrs)
-        x_next = x_next.astype(hist.dtype)
-        s, r, m = edges(nbrs, x.shape[0])
-        disp = x_next - x
-        vel = disp / self.frame_dt
-        grad_v = lsq_gradient(vel, x_next, s, r, m)
+    def step(self, params: HybridParams, state: HybridState) -> HybridState:
+        """One GNS frame or ``frame_stride`` MPM frames, as the schedule says (pure)."""
         sched = self.schedule
-        needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
-        grad_u = lsq_gradient(disp, x, s, r, m) if needs_grad_u else jnp.zeros_like(grad_v)
-        state = particles_from_nodes(state, self.cluster, x, disp, vel, grad_v, grad_u,
-                                     sched.handoff, self.lo, self.hi, sched.particle_map)
-        if sched.handoff == "reconstruct":  # plastic return mapping of the new F
-            state = state.replace(F=self.mpm.stress(params, state)[1])
-        # Energy-balance indicator: deviation of the GNS's energy change per frame from the
-        # rate the MPM showed in its last frame (J/kg, accumulated over the segment).
-        indicator = indicator + jnp.abs(self._energy_change(params, hist, x_next) - rate)
-        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
-        return (state, hist, nbrs, indicator, rate), did_overflow(nbrs)
-
-    def _frame(self, params, gns_params, material, carry, t):
-        sched = self.schedule
-        sim, mode, count = carry[:5], carry[5], carry[6]
-        use_mpm = (t < sched.warmup) | (mode == MPM_MODE)
-        sim, over = jax.lax.cond(use_mpm, lambda c: self._mpm_frame(params, c),
-                                 lambda c: self._gns_frame(params, gns_params, material, c),
-                                 sim)
-        count = count + 1
-        indicator = sim[3]
+        t = state.t
+        use_mpm = (t < sched.warmup) | (state.mode == MPM_MODE)
+        material = self.node_material(params.mpm)
+        state = jax.lax.cond(use_mpm, lambda s: self._mpm_frame(params.mpm, s),
+                             lambda s: self._gns_frame(params, material, s), state)
+        count = state.count + 1
         warm = t + 1 < sched.warmup
         if sched.gns_frames == 0:
             next_mode = jnp.asarray(MPM_MODE)
@@ -219,65 +247,79 @@ class Hybrid:
             mpm_done = ~warm & ((t + 1 == sched.warmup) | (count >= sched.mpm_frames))
             gns_done = count >= sched.gns_frames
             if sched.adaptive_tol is not None:
-                gns_done |= (count >= sched.min_gns_frames) & (indicator > sched.adaptive_tol)
+                gns_done |= (count >= sched.min_gns_frames) & (
+                    state.indicator > sched.adaptive_tol)
             next_mode = jnp.where(use_mpm, jnp.where(mpm_done, GNS_MODE, MPM_MODE),
                                   jnp.where(gns_done, MPM_MODE, GNS_MODE))
         next_mode = next_mode.astype(jnp.int32)
         switched = next_mode != jnp.where(use_mpm, MPM_MODE, GNS_MODE)
         count = jnp.where(switched, 0, count).astype(jnp.int32)
-        out = (sim[1][:, -1], sim[0].x.T, use_mpm.astype(jnp.int32), indicator, over)
-        return (*sim, next_mode, count), out
+        return state._replace(mode=next_mode, count=count, used_mpm=use_mpm, t=t + 1)
 
-    def _rollout(self, params, gns_params, state, nbrs, n_frames: int):
-        x = self.nodes(state)
-        hist = jnp.repeat(x[:, None], self.gns.config.history + 1, axis=1)
-        zero = jnp.zeros((), state.x.dtype)
-        carry = (state, hist, nbrs, zero, zero,
-                 jnp.asarray(MPM_MODE, jnp.int32), jnp.asarray(0, jnp.int32))
-        ts = jnp.arange(n_frames)
-        material = self.node_material(params)  # once per rollout, not per frame
-        body = lambda c, t: self._frame(params, gns_params, material, c, t)  # noqa: E731
-        B = self.checkpoint_block
-        if B and n_frames > B:
-            nb, rem = divmod(n_frames, B)
-            blk = jax.checkpoint(lambda c, tb: jax.lax.scan(body, c, tb))
-            carry, out = jax.lax.scan(blk, carry, ts[: nb * B].reshape(nb, B))
-            out = jax.tree.map(lambda a: a.reshape(nb * B, *a.shape[2:]), out)
-            if rem:
-                carry, o2 = jax.lax.scan(body, carry, ts[nb * B:])
-                out = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, o2)
-        else:
-            carry, out = jax.lax.scan(body, carry, ts)
-        nodes = jnp.concatenate([x[None], out[0]])
-        parts = jnp.concatenate([state.x.T[None], out[1]])
-        return nodes, parts, out[2], out[3], out[4], carry[0]
+    def observe(self, state: HybridState) -> HybridFrame:
+        """Particles, nodes, mode of the last frame, indicator and overflow flag."""
+        return HybridFrame(state.mpm.x.T, state.mpm.v.T, state.history[:, -1],
+                           state.used_mpm.astype(jnp.int32), state.indicator,
+                           did_overflow(state.nbrs))
+
+    def reallocate(self, state: HybridState, frames: HybridFrame, first_bad: int,
+                   attempt: int) -> HybridState:
+        """``state`` with a larger node neighbour list (outside jit), sized at the nodes of
+        the last valid frame before the overflow at frame ``first_bad``."""
+        x = frames.nodes[max(int(first_bad) - 1, 0)]
+        return state._replace(nbrs=self.gns.neighbors.reallocate(x, state.nbrs, attempt))
+
+    # ---------------------------------------------------------------- frames
+    def _energy_change(self, params, hist, x_next):
+        """Change of mechanical energy per unit mass (J/kg) over the frame to ``x_next``."""
+        g = params.gravity.astype(hist.dtype)
+        return jax.lax.stop_gradient(
+            specific_energy(hist[:, -1], x_next, self.counts, g, self.frame_dt)
+            - specific_energy(hist[:, -2], hist[:, -1], self.counts, g, self.frame_dt))
+
+    def _mpm_frame(self, mpm_params, s: HybridState) -> HybridState:
+        mpm_state = s.mpm
+        for _ in range(self.stride):
+            mpm_state = self.mpm.step(mpm_params, mpm_state)
+        x_next = self.nodes(mpm_state)
+        rate = self._energy_change(mpm_params, s.history, x_next)
+        hist = jnp.concatenate([s.history[:, 1:], x_next[:, None]], axis=1)
+        return s._replace(mpm=mpm_state, history=hist, indicator=jnp.zeros_like(s.indicator),
+                          rate=rate)
+
+    def _gns_frame(self, params: HybridParams, material, s: HybridState) -> HybridState:
+        hist = s.history
+        x = hist[:, -1]
+        x_next, nbrs = self.gns.advance(params.network, hist, self.node_type, material, s.nbrs)
+        x_next = x_next.astype(hist.dtype)
+        snd, rcv, msk = edges(nbrs, x.shape[0])
+        disp = x_next - x
+        vel = disp / self.frame_dt
+        grad_v = lsq_gradient(vel, x_next, snd, rcv, msk)
+        sched = self.schedule
+        needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
+        grad_u = lsq_gradient(disp, x, snd, rcv, msk) if needs_grad_u else jnp.zeros_like(grad_v)
+        mpm_state = particles_from_nodes(s.mpm, self.cluster, x, disp, vel, grad_v, grad_u,
+                                         sched.handoff, self.lo, self.hi, sched.particle_map)
+        if sched.handoff == "reconstruct":  # plastic return mapping of the new F
+            mpm_state = mpm_state.replace(F=self.mpm.stress(params.mpm, mpm_state)[1])
+        # Energy-balance indicator: deviation of the GNS's energy change per frame from the
+        # rate the MPM showed in its last frame (J/kg, accumulated over the segment).
+        indicator = s.indicator + jnp.abs(
+            self._energy_change(params.mpm, hist, x_next) - s.rate)
+        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
+        return s._replace(mpm=mpm_state, history=hist, nbrs=nbrs, indicator=indicator)
 
     # ------------------------------------------------------------------ public
-    def allocate(self, state, extra_capacity: int = 0):
-        """GNS neighbour list for the nodes of ``state`` (outside jit)."""
-        return self.gns.allocate(self.nodes(state), extra_capacity)
-
-    def rollout(self, params, state, n_frames: int, nbrs, gns_params=None):
-        """Traceable rollout (use under ``jax.grad``); returns ``(positions (T+1, N, 2),
-        nodes (T+1, M, 2), overflowed)``; an overflow means the result is invalid
-        (re-allocate ``nbrs``)."""
-        gp = self.gns_params if gns_params is None else gns_params
-        nodes, parts, _, _, over, _ = self._rollout(params, gp, state, nbrs, n_frames)
-        return parts, nodes, jnp.any(over)
-
-    def run(self, params, state, n_frames: int, nbrs=None, max_retries: int = 4):
-        """Jitted rollout of ``n_frames`` GNS frames with neighbour re-allocation on overflow
-        (outside jit). Returns ``(HybridResult, nbrs)``; the list fits this rollout."""
-        nbrs = self.allocate(state) if nbrs is None else nbrs
-        n = self.n_nodes
-        for attempt in range(max_retries + 1):
-            nodes, parts, mode, energy, over, final = self._run(params, self.gns_params, state,
-                                                                nbrs, n_frames=n_frames)
-            over = np.asarray(over)
-            if not over.any():
-                return HybridResult(parts, nodes, mode, energy, final, self.frame_dt), nbrs
-            k = int(np.argmax(over))
-            extra = (attempt + 1) * max(1, math.ceil(nbrs.idx.shape[1] / (4 * n)))
-            nbrs = self.gns.allocate(nodes[k], extra_capacity=extra)
-        raise RuntimeError(f"neighbour list still overflowing after {max_retries} "
-                           "re-allocations")
+    def run(self, params: HybridParams, mpm_state, n_frames: int,
+            checkpoint_block: int | None = None, state: HybridState | None = None,
+            max_retries: int = 4) -> tuple[HybridResult, HybridState]:
+        """Jitted rollout of ``n_frames`` frames with neighbour re-allocation on overflow
+        (outside jit). Returns ``(HybridResult, initial state)``; the initial state's list
+        fits this rollout (pass it as ``state`` to reuse it)."""
+        state = self.init(mpm_state) if state is None else state
+        frames, final, state = rollout_safe(self, params, state, n_frames,
+                                            checkpoint_block=checkpoint_block,
+                                            max_retries=max_retries)
+        return HybridResult(frames.positions, frames.nodes, frames.mode[1:],
+                            frames.indicator[1:], final.mpm, self.frame_dt), state

@@ -15,8 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from diffgns.interface import rollout
 from diffgns.io.dataset import DatasetWriter
 from diffgns.mpm import MPM
+from diffgns.mpm.solver import max_speed
 from diffgns.scene.builders import column_collapse, granular_squares
 from diffgns.trajectory import Trajectory
 
@@ -35,7 +37,8 @@ def _traj(sim, params, pos, vel) -> Trajectory:
 
 
 def _rollout(sim, state, n_frames, params):
-    return sim.rollout_full(params, state, n_frames=n_frames)[:3]
+    frames, _ = rollout(sim, params, state, n_frames)
+    return frames.positions, frames.velocities, max_speed(frames.velocities)
 
 
 def _tile(n, leaf):
@@ -59,7 +62,7 @@ def generate_columns(path, aspect_ratios, friction_angles, n_frames: int, width:
             scene = column_collapse(width=width, aspect_ratio=a, cells_across=cells_across,
                                     **scene_kw)
             sim = MPM(scene)
-            base, state = sim.params(), sim.init_state()
+            base, state = sim.params(), sim.init()
             run = jax.jit(jax.vmap(partial(_rollout, sim, state, n_frames)))
             for k in range(0, len(todo), batch):
                 ids = todo[k:k + batch]
@@ -87,7 +90,7 @@ def generate_squares(path, n: int, n_frames: int, seed: int = 0, progress: bool 
                 continue
             scene = granular_squares(seed=seed * 100003 + i, **scene_kw)
             sim = MPM(scene)
-            traj, _, _ = sim.run(sim.params(), sim.init_state(), n_frames)
+            traj, _ = sim.run(sim.params(), sim.init(), n_frames)
             w.write(f"{i:05d}", traj, attrs=dict(seed=seed * 100003 + i,
                                                  n_masses=len(scene.bodies)))
         w.finalize(connectivity_radius=2.0 * dx)

@@ -23,14 +23,14 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
     Raises UnstableError if the run leaves its stability region.
     """
     sim = MPM(scene, dtype=dtype)
-    params, state = sim.params(), sim.init_state()
+    params, state = sim.params(), sim.init()
     pos, vel = [np.asarray(state.x.T)[None]], [np.asarray(state.v.T)[None]]
     done, chunk_s = 0, []
     with tqdm(total=n_frames, desc="MPM frames", disable=not progress, unit="frame") as bar:
         while done < n_frames:
             k = min(chunk, n_frames - done)
             t0 = time.perf_counter()
-            traj, state, _ = sim.run(params, state, k)
+            traj, state = sim.run(params, state, k)
             jax.block_until_ready(state)
             chunk_s.append((k, time.perf_counter() - t0))
             pos.append(np.asarray(traj.positions[1:]))

@@ -26,6 +26,7 @@ configuration is a frozen dataclass, the statistics a pytree.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -132,18 +133,45 @@ def pad_mesh(mesh_pos, cells, node_type, n_nodes: int, n_edges: int,
                      jnp.asarray(np.concatenate([r, pad])), jnp.asarray(mask), nu)
 
 
-class MeshNet:
-    """MeshGraphNet: network, statistics and the pure step/rollout functions."""
+class MeshState(NamedTuple):
+    """State of a MeshGraphNet rollout: the padded mesh (static during a rollout), the
+    velocity (N, 2) m/s, the velocity held on non-predicted nodes (N, 2) m/s (inflow and
+    walls) and the last predicted pressure (N,) m^2/s^2 (0 before the first step)."""
 
-    def __init__(self, config: MeshNetConfig, stats: MeshStats):
+    graph: MeshGraph
+    velocity: jax.Array
+    held: jax.Array
+    pressure: jax.Array
+
+
+class MeshFrame(NamedTuple):
+    """What a MeshGraphNet rollout records at a frame: velocity (N, 2) m/s and pressure
+    (N,) m^2/s^2 (predicted with the step into this frame; 0 at frame 0)."""
+
+    velocity: jax.Array
+    pressure: jax.Array
+
+
+class MeshNet:
+    """MeshGraphNet: network and statistics; a :class:`diffgns.interface.Simulator`::
+
+        state = model.init(graph, v0)                       # v0 (N, 2) m/s
+        frames, final = rollout(model, params, state, n)     # frames.velocity (n+1, N, 2)
+
+    Args:
+        config: :class:`MeshNetConfig`.
+        stats: :class:`MeshStats`.
+        frame_dt: seconds per frame of the data the model learned (for reports).
+    """
+
+    def __init__(self, config: MeshNetConfig, stats: MeshStats, frame_dt: float = 0.01):
         if config.viscosity_feature and stats.viscosity is None:
             raise ValueError("MeshNet: viscosity_feature needs MeshStats.viscosity (the ln nu "
                              "normaliser)")
         self.config, self.stats = config, stats
         self.net = EncodeProcessDecode(latent=config.latent, mp_steps=config.mp_steps,
                                        mlp_layers=config.mlp_layers, n_types=PAD + 1, out=3)
-        # one compiled rollout per (padding, n_frames), shared by every call on this model
-        self.rollout_jit = jax.jit(self.rollout, static_argnums=3)
+        self.frame_dt = float(frame_dt)
 
     def check_graph(self, graph: MeshGraph) -> None:
         """Raise ValueError if ``graph`` lacks what this model reads (call outside jit)."""
@@ -161,7 +189,7 @@ class MeshNet:
                           self.stats.edge_scale)
         return (v, graph.node_type, e, graph.senders, graph.receivers, graph.edge_mask)
 
-    def init(self, key: jax.Array, graph: MeshGraph) -> dict:
+    def init_network(self, key: jax.Array, graph: MeshGraph) -> dict:
         return self.net.init(key, *self._inputs(graph, jnp.zeros_like(graph.mesh_pos)))
 
     def normalized_output(self, params, graph: MeshGraph, velocity) -> jax.Array:
@@ -173,22 +201,25 @@ class MeshNet:
         out = self.stats.target.denormalize(self.normalized_output(params, graph, velocity))
         return out[:, :2], out[:, 2]
 
-    def step(self, params, graph: MeshGraph, velocity, held_velocity):
+    def advance(self, params, graph: MeshGraph, velocity, held_velocity):
         """One frame: next (velocity (N, 2), pressure (N,)); non-predicted nodes get
         ``held_velocity`` (N, 2)."""
         dv, p = self.predict(params, graph, velocity)
         v = jnp.where(graph.predicted[:, None], velocity + dv, held_velocity)
         return v, p
 
-    def rollout(self, params, graph: MeshGraph, v0, n_frames: int):
-        """Roll out ``n_frames`` frames from v0 (N, 2) m/s under ``lax.scan``.
+    def init(self, graph: MeshGraph, v0) -> MeshState:
+        """Initial state from the velocity ``v0`` (N, 2) m/s, held on the boundary nodes
+        (checks outside jit that ``graph`` has what the model reads)."""
+        if not isinstance(graph.viscosity, jax.core.Tracer):
+            self.check_graph(graph)
+        v0 = jnp.asarray(v0)
+        return MeshState(graph, v0, v0, jnp.zeros(v0.shape[:-1], v0.dtype))
 
-        Returns velocities (n_frames + 1, N, 2) (frame 0 is v0) and pressures (n_frames, N)
-        of frames 1..n_frames (each step predicts the next frame's pressure).
-        """
-        def body(v, _):
-            v_next, p = self.step(params, graph, v, v0)
-            return v_next, (v_next, p)
+    def step(self, params, state: MeshState) -> MeshState:
+        """Advance one frame (pure)."""
+        v, p = self.advance(params, state.graph, state.velocity, state.held)
+        return state._replace(velocity=v, pressure=p.astype(v.dtype))
 
-        _, (vs, ps) = jax.lax.scan(body, v0, None, length=n_frames)
-        return jnp.concatenate([v0[None], vs]), ps
+    def observe(self, state: MeshState) -> MeshFrame:
+        return MeshFrame(state.velocity, state.pressure)

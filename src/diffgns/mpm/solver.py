@@ -1,12 +1,13 @@
 """The explicit MLS-MPM solver assembled from a scene's declared effects.
 
     sim = MPM(scene)
-    params, state = sim.params(), sim.init_state()
-    traj = sim.rollout(params, state, n_frames=200)      # Trajectory, T = n_frames + 1
+    params, state = sim.params(), sim.init()
+    frames, final = rollout(sim, params, state, n_frames=200)   # diffgns.rollout
+    traj, final = sim.run(params, state, 200)                    # Trajectory + stability check
 
-``substep(params, state) -> state`` is pure; ``rollout`` scans frames (``lax.scan``),
-each frame scanning ``scene.substeps`` substeps, with optional ``jax.checkpoint`` on
-substeps and on blocks of frames for gradients through long rollouts.
+The MPM is a :class:`diffgns.interface.Simulator`: ``step(params, state)`` advances one frame
+(``scene.substeps`` substeps of ``substep``, each ``jax.checkpoint``-ed so reverse mode stores
+one state per frame), ``observe(state)`` gives a :class:`~diffgns.interface.ParticleFrame`.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffgns.errors import UnstableError
+from diffgns.interface import ParticleFrame, rollout_jit
 from diffgns.mpm import boundaries, constitutive
 from diffgns.mpm import linalg as la
 from diffgns.mpm.shape import stencil
@@ -27,10 +29,19 @@ from diffgns.trajectory import ELASTIC, FLUID, SAND, Trajectory
 
 
 class MPM:
-    """Explicit 2D MLS-MPM for one scene (static); parameters and state are pytrees."""
+    """Explicit 2D MLS-MPM for one scene (static); parameters and state are pytrees.
 
-    def __init__(self, scene, dtype=None):
+    Args:
+        scene: the :class:`~diffgns.scene.Scene` (its declared effects are all that is traced).
+        dtype: float dtype of parameters and state (default: JAX's default float).
+        checkpoint_substeps: ``jax.checkpoint`` every substep, so reverse mode stores one
+            state per frame instead of one per substep (no cost in forward runs).
+    """
+
+    def __init__(self, scene, dtype=None, checkpoint_substeps: bool = True):
         self.scene = scene
+        self.frame_dt = float(scene.frame_dt)
+        self.checkpoint_substeps = bool(checkpoint_substeps)
         self.dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(0.0).dtype
         self.dx = float(scene.dx)
         self.dt = float(scene.substep_dt)
@@ -45,15 +56,14 @@ class MPM:
         self.groups = scene.material_groups()
         self.obstacle_nodes = boundaries.obstacle_nodes(
             scene.obstacles, self.grid_shape, self.origin, self.dx) if scene.obstacles else {}
-        self.rollout_full = jax.jit(self._rollout, static_argnames=("n_frames", "checkpoint",
-                                                                     "block"))
 
     # ------------------------------------------------------------ construction
     def params(self) -> MPMParams:
         """Parameters of the scene as differentiable leaves."""
         return MPMParams.from_scene(self.scene, self.dtype)
 
-    def init_state(self) -> MPMState:
+    def init(self) -> MPMState:
+        """Initial state of the scene's particles (positions, velocities, volumes)."""
         p = self.scene.particles()
         return MPMState.from_particles(p["x"], p["v"], p["vol"], self.dtype)
 
@@ -133,64 +143,37 @@ class MPM:
         x = jnp.clip(x, lo[:, None], hi[:, None])  # never leave the domain (and the grid)
         return state.replace(x=x, v=v, C=C, F=F)
 
-    def frame(self, params: MPMParams, state: MPMState, checkpoint: bool = False) -> MPMState:
-        """Advance one frame (``scene.substeps`` substeps)."""
+    def step(self, params: MPMParams, state: MPMState) -> MPMState:
+        """Advance one frame (``scene.substeps`` substeps of ``scene.substep_dt`` s)."""
         sub = self.substep
-        if checkpoint:
-            sub = jax.checkpoint(sub)
+        if self.checkpoint_substeps:
+            sub = jax.checkpoint(sub, prevent_cse=False)
         state, _ = jax.lax.scan(lambda s, _: (sub(params, s), None), state, None,
                                 length=self.n_sub)
         return state
 
-    # ------------------------------------------------------------------ rollout
-    def _rollout(self, params, state, n_frames: int, checkpoint: bool = False,
-                 block: int | None = None):
-        init = state
+    def observe(self, state: MPMState) -> ParticleFrame:
+        """Positions (N, 2) m and velocities (N, 2) m/s; the MPM never overflows."""
+        return ParticleFrame(state.x.T, state.v.T, jnp.zeros((), bool))
 
-        def one(s, _):
-            s = self.frame(params, s, checkpoint)
-            speed = jnp.sqrt(jnp.max(jnp.sum(s.v * s.v, 0)))
-            return s, (s.x.T, s.v.T, speed)
-
-        def frames(s, n):
-            return jax.lax.scan(one, s, None, length=n)
-
-        if checkpoint and block and n_frames > block:
-            nb, rem = divmod(n_frames, block)
-            blk = jax.checkpoint(lambda s, _: frames(s, block))
-            state, out = jax.lax.scan(blk, state, None, length=nb)
-            out = jax.tree.map(lambda a: a.reshape(nb * block, *a.shape[2:]), out)
-            if rem:
-                state, out2 = frames(state, rem)
-                out = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, out2)
-        else:
-            state, out = frames(state, n_frames)
-        pos = jnp.concatenate([init.x.T[None], out[0]])
-        vel = jnp.concatenate([init.v.T[None], out[1]])
-        return pos, vel, out[2], state
-
-    def rollout(self, params: MPMParams, state: MPMState, n_frames: int,
-                checkpoint: bool = False, block: int | None = None) -> Trajectory:
-        """Roll out ``n_frames`` frames; the Trajectory has T = n_frames + 1 frames
-        (frame 0 is ``state``). ``checkpoint``/``block`` trade compute for memory in
-        reverse-mode gradients."""
-        traj, _, _ = self.run(params, state, n_frames, checkpoint=checkpoint, block=block,
-                              check=False)
-        return traj
-
-    def run(self, params, state, n_frames, checkpoint=False, block=None, check=True):
-        """Like :meth:`rollout` but also returns the final state and per-frame max speed
-        (m/s); with ``check`` (outside jit/grad) raises UnstableError on a CFL breach or a
-        non-finite state."""
-        pos, vel, speed, final = self.rollout_full(params, state, n_frames=n_frames,
-                                                   checkpoint=checkpoint, block=block)
-        traj = Trajectory(positions=pos, velocities=vel,
+    def trajectory(self, params: MPMParams, frames: ParticleFrame) -> Trajectory:
+        """The :class:`Trajectory` of stacked frames (with particle types and tan phi)."""
+        return Trajectory(positions=frames.positions, velocities=frames.velocities,
                           particle_type=jnp.asarray(self.particle_type()),
                           material=self.material_feature(params),
-                          frame_dt=self.scene.frame_dt, bounds=self.scene.domain)
-        if check and not isinstance(speed, jax.core.Tracer):
-            self.check_stability(params, speed, pos)
-        return traj, final, speed
+                          frame_dt=self.frame_dt, bounds=self.scene.domain)
+
+    def run(self, params: MPMParams, state: MPMState, n_frames: int,
+            checkpoint_block: int | None = None, check: bool = True
+            ) -> tuple[Trajectory, MPMState]:
+        """Jitted :func:`diffgns.interface.rollout` returning ``(Trajectory (T = n_frames + 1),
+        final state)``; with ``check`` (outside jit) raises UnstableError on a CFL breach or a
+        non-finite state."""
+        frames, final = rollout_jit(self, params, state, n_frames=int(n_frames),
+                                    checkpoint_block=checkpoint_block)
+        if check and not isinstance(frames.velocities, jax.core.Tracer):
+            self.check_stability(params, max_speed(frames.velocities), frames.positions)
+        return self.trajectory(params, frames), final
 
     def courant(self, params: MPMParams, max_speed) -> float:
         """Largest Courant number dt (c + |v|) / dx for the given max particle speed."""
@@ -200,6 +183,8 @@ class MPM:
         return float(self.dt * (c + jnp.max(max_speed)) / self.dx)
 
     def check_stability(self, params, speed, pos) -> None:
+        """Raise UnstableError if ``pos`` is non-finite or the Courant number for the
+        per-frame max speeds ``speed`` (m/s) exceeds 1."""
         if not bool(jnp.all(jnp.isfinite(pos))):
             raise UnstableError("MPM state became non-finite; reduce dt (Scene.cfl) or check "
                                 "material parameters")
@@ -209,3 +194,8 @@ class MPM:
                 f"MPM Courant number reached {cr:.2f} > 1 (max speed {float(jnp.max(speed)):.2f} "
                 f"m/s, dt = {self.dt:.2e} s): results are unreliable; set Scene.max_speed higher "
                 "or lower Scene.cfl")
+
+
+def max_speed(velocities: jax.Array) -> jax.Array:
+    """(T,) largest particle speed of each frame (m/s) of velocities (T, N, d)."""
+    return jnp.sqrt(jnp.max(jnp.sum(velocities * velocities, -1), -1))
