@@ -7,7 +7,7 @@ import pytest
 
 from diffgns.graph.features import (
     Normalizer,
-    Normalizers,
+    ParticleStats,
     edge_features,
     n_node_features,
     node_features,
@@ -81,7 +81,7 @@ def test_normalizer_round_trip_and_noise_folding():
     meta = {"vel_mean": [1e-4, -2e-4], "vel_std": [3e-3, 4e-3],
             "acc_mean": [0.0, -1e-4], "acc_std": [2e-4, 5e-4]}
     sigma = 6.7e-4
-    norm = Normalizers.from_metadata(meta, noise_std=sigma)
+    norm = ParticleStats.from_metadata(meta, noise_std=sigma)
     np.testing.assert_allclose(norm.velocity.std, np.sqrt(np.square([3e-3, 4e-3]) + sigma**2))
     np.testing.assert_allclose(norm.acceleration.std,
                                np.sqrt(np.square([2e-4, 5e-4]) + sigma**2), rtol=1e-6)
@@ -91,7 +91,7 @@ def test_normalizer_round_trip_and_noise_folding():
     leaves = jax.tree.leaves(norm)
     assert len(leaves) == 4  # a pytree of arrays: can be passed through jit
     with pytest.raises(KeyError, match="acc_std"):
-        Normalizers.from_metadata({k: v for k, v in meta.items() if k != "acc_std"})
+        ParticleStats.from_metadata({k: v for k, v in meta.items() if k != "acc_std"})
 
 
 def test_random_walk_noise_statistics():

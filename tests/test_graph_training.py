@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from diffgns.graph.data import WindowSampler, coarse_grain, load_trajectories
-from diffgns.graph.features import Normalizers, random_walk_noise
+from diffgns.graph.features import ParticleStats, random_walk_noise
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.training import (
     TrainConfig,
@@ -51,7 +51,7 @@ def small_gns(trajs):
 
     cfg = GNSConfig(bounds=BOUNDS, radius=0.045, latent=16, mp_steps=1, mlp_layers=1,
                     noise_std=1e-4)
-    return GNS(cfg, Normalizers.from_metadata(frame_statistics(trajs), cfg.noise_std))
+    return GNS(cfg, ParticleStats.from_metadata(frame_statistics(trajs), cfg.noise_std))
 
 
 def _init(gns, trajs):
@@ -200,7 +200,7 @@ def test_fine_tuning_keeps_the_normaliser_and_may_change_only_noise_and_head_roo
     params = _init(gns, trajs)
     save_model(tmp_path / "m", gns, params, {})
     quieter = GNS(dataclasses.replace(gns.config, noise_std=3e-5, capacity_multiplier=1.1),
-                  Normalizers.from_metadata({"vel_mean": [0, 0], "vel_std": [1, 1],
+                  ParticleStats.from_metadata({"vel_mean": [0, 0], "vel_std": [1, 1],
                                              "acc_mean": [0, 0], "acc_std": [1, 1]}))
     tuned, p = _initial_model(tmp_path / "m", quieter)
     assert tuned.config.noise_std == 3e-5

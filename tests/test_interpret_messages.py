@@ -64,3 +64,36 @@ def test_premise_metrics_on_synthetic_messages():
     feats = np.concatenate([dx, np.linalg.norm(dx, axis=1, keepdims=True)], axis=1)
     expect = np.sum(F * dx, axis=1) / feats[:, 2]
     np.testing.assert_allclose(messages.radial_force(msgs[:, :2], W, feats), expect, atol=1e-6)
+
+
+def test_message_stats_fit_the_samples_and_round_trip(samples):
+    st = message_net.MessageStats.fit(samples)
+    e = samples["edges"].reshape(-1, samples["edges"].shape[-1]).astype(np.float64)
+    np.testing.assert_allclose(st.edge.mean, e.mean(0), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(st.edge.std, np.maximum(e.std(0), 1e-8), rtol=1e-5)
+    assert float(st.acceleration.mean) == 0.0  # a pure scale
+    assert float(st.acceleration.std) == pytest.approx(float(np.std(samples["acc"])), rel=1e-5)
+    back = message_net.MessageStats.from_dict(st.to_dict())
+    for a, b in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(back)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("name", ["message_net_spring", "message_net_spring_l1",
+                                  "message_net_inverse_square",
+                                  "message_net_inverse_square_l1"])
+def test_shipped_message_nets_load_with_their_normaliser(name):
+    import json
+
+    from diffgns.models import model_path
+
+    folder = model_path(name) / "model"
+    net, norm, params, _ = message_net.load(folder)
+    saved = json.loads((folder / "model.json").read_text())["normaliser"]
+    for k, v in norm.to_dict().items():
+        np.testing.assert_allclose(v, saved[k], rtol=1e-6)
+    # the loaded network runs on its own feature widths
+    E, N = len(saved["edge_mean"]), len(saved["node_mean"])
+    acc, msg = message_net.forward(net, norm, params, np.ones((1, 3, E), np.float32),
+                                   np.ones((1, 2, N), np.float32), np.array([0, 1, 1]))
+    assert acc.shape == (1, 2, 2) and msg.shape == (1, 3, net.cfg.msg_dim)
+    assert np.isfinite(np.asarray(acc)).all()

@@ -1,4 +1,4 @@
-"""Node and edge features, normalisation statistics and training noise for the particle GNS.
+"""Node and edge features, the normaliser and training noise for the particle GNS.
 
 Units: positions in m (the dataset's position unit); time in **frames**, so a velocity is a
 displacement per frame (m/frame) and an acceleration a displacement per frame^2 (m/frame^2),
@@ -27,14 +27,15 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from diffgns.trajectory import KINEMATIC
 
 __all__ = [
-    "Normalizer", "Normalizers", "combine_std", "edge_features", "node_features",
-    "n_node_features", "random_walk_noise", "target_acceleration", "velocities",
-    "wall_distances",
+    "Normalizer", "Normalizers", "ParticleStats", "combine_std", "edge_features",
+    "node_features", "n_node_features", "random_walk_noise", "target_acceleration",
+    "velocities", "wall_distances",
 ]
 
 
@@ -46,11 +47,12 @@ def combine_std(std_data, sigma: float) -> jax.Array:
 
 @struct.dataclass
 class Normalizer:
-    """Affine normaliser ``(x - mean) / std``; ``mean``, ``std`` broadcast against ``x``.
+    """Affine normaliser ``(x - mean) / std``: the one normaliser of diffgns (particle GNS,
+    MeshGraphNet, message networks); ``mean``, ``std`` broadcast against ``x``.
 
     Attributes:
-        mean: (D,) array, in the units of the quantity (e.g. m/frame).
-        std: (D,) array, same units, > 0.
+        mean: (D,) or () array, in the units of the quantity (e.g. m/frame).
+        std: same shape and units, > 0.
     """
 
     mean: jax.Array
@@ -66,16 +68,28 @@ class Normalizer:
     def identity(cls, dim: int = 2) -> Normalizer:
         return cls(jnp.zeros((dim,)), jnp.ones((dim,)))
 
+    @classmethod
+    def fit(cls, x, min_std: float = 0.0, center: bool = True) -> Normalizer:
+        """Per-feature statistics of samples ``x`` (..., D) over every leading axis (or of
+        all of ``x`` when it is 1-D), computed in float64; the std is floored at ``min_std``.
+        ``center=False`` keeps ``mean = 0`` (a pure scale)."""
+        a = np.asarray(x, np.float64)
+        a = a.reshape(-1, a.shape[-1]) if a.ndim > 1 else a.reshape(-1)
+        f = jnp.result_type(float)
+        mean = a.mean(0) if center else np.zeros(a.shape[1:])
+        return cls(jnp.asarray(mean, f), jnp.asarray(np.maximum(a.std(0), min_std), f))
+
 
 @struct.dataclass
-class Normalizers:
-    """Velocity (m/frame) and acceleration (m/frame^2) normalisers of a GNS."""
+class ParticleStats:
+    """Normalisation statistics of a particle GNS: velocity (m/frame) and acceleration
+    (m/frame^2) :class:`Normalizer`."""
 
     velocity: Normalizer
     acceleration: Normalizer
 
     @classmethod
-    def from_metadata(cls, meta: dict, noise_std: float = 0.0) -> Normalizers:
+    def from_metadata(cls, meta: dict, noise_std: float = 0.0) -> ParticleStats:
         """Build from a metadata dict with ``vel_mean``, ``vel_std``, ``acc_mean``, ``acc_std``.
 
         The random-walk noise ``noise_std`` (m) is folded into both stds,
@@ -93,8 +107,13 @@ class Normalizers:
         )
 
     @classmethod
-    def identity(cls, dim: int = 2) -> Normalizers:
+    def identity(cls, dim: int = 2) -> ParticleStats:
         return cls(Normalizer.identity(dim), Normalizer.identity(dim))
+
+
+#: former name of :class:`ParticleStats`, kept until its last users (graph/gns.py,
+#: graph/__init__.py, tests/test_graph_gns.py, tests/test_inverse_gns.py, benchmarks) switch
+Normalizers = ParticleStats
 
 
 def velocities(history: jax.Array) -> jax.Array:

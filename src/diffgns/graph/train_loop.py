@@ -19,7 +19,7 @@ from flax import serialization
 
 from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
 from diffgns.graph.evaluate import evaluate
-from diffgns.graph.features import Normalizers
+from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.training import Trainer, step_with_reallocation
@@ -47,7 +47,7 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
     g["bounds"] = tuple(tuple(b) for b in g["bounds"])
     cfg = GNSConfig(**g)
     n = info["normalizer"]
-    norm = Normalizers.from_metadata(dict(vel_mean=n["vel_mean"], vel_std=n["vel_std"],
+    norm = ParticleStats.from_metadata(dict(vel_mean=n["vel_mean"], vel_std=n["vel_std"],
                                           acc_mean=n["acc_mean"], acc_std=n["acc_std"]), 0.0)
     src = info.get("source") or {}
     gns = GNS(cfg, norm, frame_dt=float(src.get("dt", 2.5e-3)) * int(info.get("frame_stride", 1)))
@@ -96,7 +96,7 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
     cfg = GNSConfig(bounds=bounds, **gns_kw)
     frame_dt = float(trajs[0].frame_dt) if trajs else 2.5e-3
-    return GNS(cfg, Normalizers.from_metadata(stats, cfg.noise_std), frame_dt), trajs, stats
+    return GNS(cfg, ParticleStats.from_metadata(stats, cfg.noise_std), frame_dt), trajs, stats
 
 
 def _initial_model(path, gns: GNS):

@@ -24,8 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization
+from flax import serialization, struct
 
+from diffgns.graph.features import Normalizer
 from diffgns.graph.fit import TrainConfig, fit, make_optimizer, step_rng
 from diffgns.graph.networks import MLP
 
@@ -83,47 +84,54 @@ class MessageNet(nn.Module):
         return acc, msg
 
 
-@dataclasses.dataclass
-class Normaliser:
-    """Standardisation of edge and node features and of accelerations (fitted on training)."""
+@struct.dataclass
+class MessageStats:
+    """Normalisation statistics of a message network (fitted on the training samples):
+    :class:`~diffgns.graph.features.Normalizer` of the edge features (F_e,), the node
+    features (F_n,) and the accelerations (a scale only: ``mean = 0``, ``std`` a scalar,
+    m/s^2). Stds are floored at 1e-8."""
 
-    edge_mean: np.ndarray
-    edge_std: np.ndarray
-    node_mean: np.ndarray
-    node_std: np.ndarray
-    acc_std: float
+    edge: Normalizer
+    node: Normalizer
+    acceleration: Normalizer
 
     @classmethod
-    def fit(cls, samples: dict) -> Normaliser:
-        e = samples["edges"].reshape(-1, samples["edges"].shape[-1])
-        n = samples["node"].reshape(-1, samples["node"].shape[-1])
-        return cls(e.mean(0), np.maximum(e.std(0), 1e-8), n.mean(0),
-                   np.maximum(n.std(0), 1e-8), float(np.maximum(samples["acc"].std(), 1e-8)))
+    def fit(cls, samples: dict) -> MessageStats:
+        return cls(Normalizer.fit(samples["edges"], 1e-8), Normalizer.fit(samples["node"], 1e-8),
+                   Normalizer.fit(np.ravel(samples["acc"]), 1e-8, center=False))
 
     def to_dict(self) -> dict:
-        return {k: np.asarray(v).tolist() for k, v in dataclasses.asdict(self).items()}
+        """The ``model.json`` form: edge_mean, edge_std, node_mean, node_std, acc_std."""
+        return dict(edge_mean=np.asarray(self.edge.mean).tolist(),
+                    edge_std=np.asarray(self.edge.std).tolist(),
+                    node_mean=np.asarray(self.node.mean).tolist(),
+                    node_std=np.asarray(self.node.std).tolist(),
+                    acc_std=float(self.acceleration.std))
 
     @classmethod
-    def from_dict(cls, d: dict) -> Normaliser:
-        return cls(*(np.asarray(d[f.name]) for f in dataclasses.fields(cls)))
+    def from_dict(cls, d: dict) -> MessageStats:
+        f = jnp.result_type(float)
+        arr = lambda k: jnp.asarray(d[k], f)
+        return cls(Normalizer(arr("edge_mean"), arr("edge_std")),
+                   Normalizer(arr("node_mean"), arr("node_std")),
+                   Normalizer(jnp.zeros((), f), arr("acc_std")))
 
 
-def forward(net: MessageNet, norm: Normaliser, params, edges, nodes, receivers):
+def forward(net: MessageNet, norm: MessageStats, params, edges, nodes, receivers):
     """Physical-unit forward pass on a batch of graphs.
 
     edges (G, E, F_e) and nodes (G, N, F_n) in physical units -> (accelerations (G, N, 2)
     in m/s^2, messages (G, E, msg_dim)).
     """
-    e = (edges - norm.edge_mean) / norm.edge_std
-    n = (nodes - norm.node_mean) / norm.node_std
+    e, n = norm.edge.normalize(edges), norm.node.normalize(nodes)
     acc, msg = jax.vmap(lambda a, b: net.apply(params, a, b, receivers))(e, n)
-    return acc * norm.acc_std, msg
+    return norm.acceleration.denormalize(acc), msg
 
 
-def make_loss(net: MessageNet, norm: Normaliser, receivers):
+def make_loss(net: MessageNet, norm: MessageStats, receivers):
     def loss_fn(params, edges, nodes, acc, l1_scale=1.0):
         pred, msg = forward(net, norm, params, edges, nodes, receivers)
-        err = (pred - acc) / norm.acc_std
+        err = (pred - acc) / norm.acceleration.std
         fit = jnp.mean(err**2) if net.cfg.loss == "mse" else jnp.mean(jnp.abs(err))
         l1 = jnp.mean(jnp.sum(jnp.abs(msg), axis=-1))
         l2 = jnp.sum(params["params"]["node_model"]["hidden_0"]["kernel"] ** 2)
@@ -131,7 +139,7 @@ def make_loss(net: MessageNet, norm: Normaliser, receivers):
     return loss_fn
 
 
-def save(out: Path, cfg: MessageNetConfig, norm: Normaliser, params, info: dict) -> None:
+def save(out: Path, cfg: MessageNetConfig, norm: MessageStats, params, info: dict) -> None:
     """Write ``params.msgpack`` and ``model.json`` (config, normaliser, info) to ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "params.msgpack").write_bytes(serialization.to_bytes(params))
@@ -144,9 +152,9 @@ def load(path: str | Path):
     path = Path(path)
     meta = json.loads((path / "model.json").read_text())
     cfg = MessageNetConfig(**meta.pop("net"))
-    norm = Normaliser.from_dict(meta.pop("normaliser"))
+    norm = MessageStats.from_dict(meta.pop("normaliser"))
     net = MessageNet(cfg)
-    n_edge, n_node = len(norm.edge_mean), len(norm.node_mean)
+    n_edge, n_node = len(norm.edge.mean), len(norm.node.mean)
     template = net.init(jax.random.PRNGKey(0), jnp.zeros((2, n_edge)), jnp.zeros((2, n_node)),
                         jnp.zeros(2, jnp.int32))
     params = serialization.from_bytes(template, (path / "params.msgpack").read_bytes())
@@ -164,7 +172,7 @@ def train(samples: dict, out_dir: str | Path, cfg: MessageNetConfig, tcfg: Train
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     net = MessageNet(cfg)
-    norm = Normaliser.fit(samples)
+    norm = MessageStats.fit(samples)
     recv = jnp.asarray(samples["receivers"])
     params = net.init(jax.random.PRNGKey(tcfg.seed), jnp.zeros(samples["edges"].shape[1:]),
                       jnp.zeros(samples["node"].shape[1:]), recv)

@@ -59,7 +59,7 @@ def padding_for(trajs: list[dict], multiple: int = 64) -> tuple[int, int]:
 
 
 def viscosity_stats(trajs: list[dict]) -> Normalizer:
-    """Normaliser of ln(nu) (nu in m^2/s, from each trajectory's ``attrs["nu"]``); a std
+    """Normalizer of ln(nu) (nu in m^2/s, from each trajectory's ``attrs["nu"]``); a std
     below 1e-6 (one viscosity) is replaced by 1."""
     log_nu = np.log([float(t["attrs"]["nu"]) for t in trajs])
     std = float(np.std(log_nu))
