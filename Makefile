@@ -7,8 +7,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= results/inverse
 PYTEST_ARGS ?= -q -x -n 2
+MIN_VENV ?= .venv-min
+MIN_TESTS ?= tests/test_scene.py tests/test_mpm_physics.py tests/test_linalg.py \
+	tests/test_graph_networks.py tests/test_graph_neighbors.py tests/test_packaging.py
 
-.PHONY: demo collapse test test-slow bench bench-gns symbolic lint venv
+.PHONY: demo collapse test test-min test-slow docs bench bench-gns symbolic lint venv
 
 $(VENV)/.installed-%: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +38,20 @@ test: $(VENV)/.installed-test
 	@# pytest exits 5 when it collected nothing: say so (.ci/run fails on this line)
 	$(PY) -m pytest $(PYTEST_ARGS) || { rc=$$?; [ $$rc -ne 5 ] || \
 		echo "pytest collected no tests (exit 5)" >&2; exit $$rc; }
+
+# the dependency floors: a separate venv with every floor of pyproject.toml (core and the cfd
+# extra) installed at ==floor, and a quick subset of the tests (~3 min)
+$(MIN_VENV)/.installed: pyproject.toml .ci/floors.py
+	test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
+	$(MIN_VENV)/bin/python -m pip install -q --upgrade pip
+	$(MIN_VENV)/bin/python .ci/floors.py cfd > $(MIN_VENV)/constraints.txt
+	$(MIN_VENV)/bin/python -m pip install -q -c $(MIN_VENV)/constraints.txt -e ".[cfd]" \
+		pytest pytest-benchmark
+	touch $@
+
+test-min: $(MIN_VENV)/.installed
+	cat $(MIN_VENV)/constraints.txt
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(MIN_TESTS) -k "not non_editable"
 
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow
