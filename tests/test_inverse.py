@@ -105,6 +105,30 @@ def test_finite_difference_option_and_gradient_check_match_ad():
     assert chk["ad_time_s"] > 0 and chk["fd_time_s"] > 0
 
 
+def test_fd_step_rule_has_a_unit_floor_and_stays_inside_bounds():
+    assert inverse.fd_step(30.0, 1e-3) == pytest.approx(0.03)
+    assert inverse.fd_step(0.0, 1e-3) == pytest.approx(1e-3)  # floor: 1 unit, not 0
+    assert inverse.fd_step(-0.2, 1e-3) == pytest.approx(1e-3)
+    assert inverse.fd_step(1e-4, 1e-2, lo=0.0, hi=2.0) == pytest.approx(5e-5)  # half-way
+    assert inverse.fd_step(1.9999, 1e-2, lo=0.0, hi=2.0) == pytest.approx(5e-5, rel=1e-6)
+    assert inverse.central_difference(lambda x: x**3, 2.0, 1e-3) == pytest.approx(12.0,
+                                                                                 rel=1e-6)
+
+
+def test_fd_gradient_at_zero_and_next_to_a_bound_matches_ad():
+    """float32: at x = 0 a purely relative step (1e-6 with the old 1e-3 floor) left ~1 %
+    rounding error in the difference; next to a bound the step must not leave the range."""
+    f = lambda th: (th["x"] - 0.5) ** 2 + 3.0 * th["mu"]
+    res = inverse.optimize(f, {"x": 0.0, "mu": 2e-4}, inverse.make_optimizer("sgd", 0.0),
+                           max_iter=0, gradient="fd", fd_rel_step=1e-3,
+                           transforms={"mu": inverse.Bounded(0.0, 2.0)})
+    assert res.history[0]["grad"]["x"] == pytest.approx(-1.0, rel=1e-4)
+    assert res.history[0]["grad"]["mu"] == pytest.approx(3.0, rel=1e-3)
+    fd = inverse.finite_difference_grad(lambda th: (th["x"] - 0.5) ** 2, {"x": 0.0},
+                                        rel_step=1e-3)
+    assert fd["x"] == pytest.approx(-1.0, rel=1e-4)
+
+
 def test_levenberg_marquardt_solves_two_residuals_and_rejects_bad_steps():
     from diffgns.inverse.lsq import least_squares
 

@@ -4,6 +4,13 @@
 :mod:`diffgns.inverse.solve`; objectives are in :mod:`diffgns.inverse.objectives`,
 Levenberg-Marquardt in :mod:`diffgns.inverse.lsq`.
 """
+from diffgns.inverse.gradients import (
+    central_difference,
+    fd_step,
+    finite_difference_grad,
+    gradient_check,
+)
+from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
 from diffgns.inverse.solve import (
     DEFAULT_TRANSFORMS,
     FRICTION_ANGLE,
@@ -12,17 +19,12 @@ from diffgns.inverse.solve import (
     Identity,
     InverseResult,
     apply_theta,
-    current_rss_mb,
     evaluate_redo,
-    finite_difference_grad,
     frames_to_rest,
     gauss_newton_step,
-    gradient_check,
     make_optimizer,
-    memory_stats,
     mpm_final_positions,
     optimize,
-    peak_rss_mb,
     record,
     setup,
 )
@@ -35,8 +37,10 @@ __all__ = [
     "InverseResult",
     "MPM_STATE_PARAMS",
     "apply_theta",
+    "central_difference",
     "current_rss_mb",
     "evaluate_redo",
+    "fd_step",
     "finite_difference_grad",
     "frames_to_rest",
     "gauss_newton_step",

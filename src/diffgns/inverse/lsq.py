@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns.inverse.solve import InverseResult, evaluate_redo, memory_stats, record, setup
+from diffgns.inverse.memory import memory_stats
+from diffgns.inverse.solve import InverseResult, evaluate_redo, record, setup
 
 
 def least_squares(residual_fn: Callable, theta0: dict, max_iter: int = 20,

@@ -21,7 +21,6 @@ Levenberg-Marquardt on residual vectors (forward-mode Jacobians) is in
 from __future__ import annotations
 
 import math
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -31,19 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MB (ru_maxrss is KiB on Linux)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def current_rss_mb() -> float:
-    """Resident memory of this process now, MB (Linux /proc; 0 where unavailable)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
-    except OSError:  # pragma: no cover - non-Linux
-        return 0.0
+from diffgns.inverse.gradients import central_difference, fd_step
+from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
 
 
 # ------------------------------------------------------------------------ transforms
@@ -146,14 +134,6 @@ def make_optimizer(name: str, learning_rate: float = 1.0, decay: float = 1.0,
     raise ValueError(f"optimizer {name!r} is unknown; use 'gauss-newton', 'adam' or 'sgd'")
 
 
-def memory_stats(compiled) -> dict:
-    """XLA memory analysis of a compiled executable (bytes: temp, argument, output, alias)."""
-    m = compiled.memory_analysis()
-    keys = ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes",
-            "alias_size_in_bytes")
-    return {k: int(getattr(m, k)) for k in keys if m is not None and hasattr(m, k)}
-
-
 def setup(theta0: dict, transforms: dict | None):
     """(transforms by name, initial u, u -> theta) for physical ``theta0``; validates it."""
     tf = {k: (transforms or {}).get(k, DEFAULT_TRANSFORMS.get(k, Identity())) for k in theta0}
@@ -213,7 +193,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         step_tol: stop when every proposed step (physical units; a float or a dict by name)
             is smaller than this; the final theta is then the last evaluated one.
         gradient: "ad" (value_and_grad, compiled ahead of time) or "fd" (central finite
-            differences of the compiled loss, relative step ``fd_rel_step``).
+            differences of the compiled loss in physical units, step
+            :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``).
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
@@ -252,11 +233,12 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         theta = to_theta(u)
         g_u = {}
         for k in u:  # central differences in physical units, chained to u
-            h = fd_rel_step * max(abs(float(theta[k])), 1e-3)
-            vals = [exe(dict(u, **{k: jnp.asarray(tf[k].inverse(float(theta[k]) + s, k),
-                                                  dtype)}))[0] for s in (h, -h)]
-            dtheta_du = jax.grad(tf[k].forward)(u[k])
-            g_u[k] = (vals[0] - vals[1]) / (2 * h) * dtheta_du
+            along = lambda x, k=k: exe(dict(u, **{k: jnp.asarray(tf[k].inverse(x, k),
+                                                                 dtype)}))[0]
+            lo, hi = getattr(tf[k], "lo", -math.inf), getattr(tf[k], "hi", math.inf)
+            x = float(theta[k])
+            g_theta = central_difference(along, x, fd_step(x, fd_rel_step, lo, hi))
+            g_u[k] = g_theta * jax.grad(tf[k].forward)(u[k])
         return loss, aux, g_u
 
     build()
@@ -287,79 +269,6 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         u = new
     result.wall_time_s = time.perf_counter() - t_start
     return result
-
-
-def finite_difference_grad(loss_fn: Callable[[dict], jax.Array], theta: dict,
-                           rel_step: float = 1e-4) -> dict:
-    """Central finite-difference gradient of ``loss_fn`` at ``theta`` (one pair of runs per
-    parameter, step ``rel_step * max(|theta_k|, 1)``), for comparison with the AD gradient."""
-    f = jax.jit(loss_fn)
-    out = {}
-    for k, v in theta.items():
-        h = rel_step * max(abs(float(v)), 1.0)
-        up = dict(theta, **{k: jnp.asarray(float(v) + h)})
-        dn = dict(theta, **{k: jnp.asarray(float(v) - h)})
-        out[k] = float((f(up) - f(dn)) / (2 * h))
-    return out
-
-
-def gradient_check(loss_fn: Callable[[dict], jax.Array], theta: dict,
-                   rel_steps=(1e-2, 1e-3, 1e-4), repeats: int = 3, scan: int = 0) -> dict:
-    """AD gradient against central finite differences at ``theta``: values and times.
-
-    Both programs are compiled ahead of time (``compile_s``); times are medians of
-    ``repeats`` steady calls (s). A finite-difference gradient costs 2 forward runs per
-    parameter and step; ``rel_diff[step][k] = |fd - ad| / |ad|``. With ``scan`` > 0 the loss
-    is also evaluated at ``theta_k + j h`` (j = -scan..scan, h = the smallest relative step)
-    and the one-sided slopes of the 2 scan intervals are summarised (``slopes[k]``: median,
-    and the fraction within 2 % of AD): a piecewise-smooth loss (e.g. a rollout whose radius
-    graph changes) shows as a few outlying slopes while most match AD.
-    """
-    th = {k: jnp.asarray(v, jnp.result_type(float)) for k, v in theta.items()}
-    out = {"theta": {k: float(v) for k, v in theta.items()}}
-    progs = {}
-    for name, fn in (("forward", loss_fn), ("gradient", jax.grad(loss_fn))):
-        t0 = time.perf_counter()
-        progs[name] = jax.jit(fn).lower(th).compile()
-        out[f"{name}_compile_s"] = time.perf_counter() - t0
-        out[f"{name}_xla_memory"] = memory_stats(progs[name])
-
-    def med(f):
-        jax.block_until_ready(f())
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            r = jax.block_until_ready(f())
-            ts.append(time.perf_counter() - t0)
-        return r, float(np.median(ts))
-
-    g, out["ad_time_s"] = med(lambda: progs["gradient"](th))
-    _, out["forward_time_s"] = med(lambda: progs["forward"](th))
-    out["ad"] = {k: float(v) for k, v in g.items()}
-    out["fd"], out["rel_diff"] = {}, {}
-    for rel in rel_steps:
-        fd = {}
-        for k, v in theta.items():
-            h = rel * max(abs(float(v)), 1e-3)
-            up, dn = (progs["forward"](dict(th, **{k: th[k] + s})) for s in (h, -h))
-            fd[k] = float((up - dn) / (2 * h))
-        out["fd"][f"{rel:g}"] = fd
-        out["rel_diff"][f"{rel:g}"] = {k: abs(fd[k] - out["ad"][k]) / max(abs(out["ad"][k]),
-                                                                        1e-300) for k in fd}
-    out["fd_time_s"] = 2 * len(theta) * out["forward_time_s"]
-    if scan:
-        out["slopes"] = {}
-        for k, v in theta.items():
-            h = min(rel_steps) * max(abs(float(v)), 1e-3)
-            vals = np.array([float(progs["forward"](dict(th, **{k: th[k] + j * h})))
-                             for j in range(-scan, scan + 1)])
-            sl = np.diff(vals) / h
-            ad = out["ad"][k]
-            out["slopes"][k] = dict(step=h, median=float(np.median(sl)),
-                                    median_rel_diff=float(abs(np.median(sl) - ad) / abs(ad)),
-                                    within_2pct=float(np.mean(np.abs(sl - ad) <= 0.02 * abs(ad))),
-                                    values=sl.tolist())
-    return out
 
 
 # ------------------------------------------------------------------------ MPM plumbing
