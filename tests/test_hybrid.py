@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 
 from diffgns import MPM
+from diffgns.graph.gns import GNSParams
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.handoff import lsq_gradient, node_means, particles_from_nodes
-from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, Schedule
+from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, HybridParams, Schedule
+from diffgns.interface import rollout, rollout_jit, rollout_safe
 from diffgns.metrics import runout
 from diffgns.models import model_path
 from diffgns.scene.builders import column_collapse
@@ -49,7 +51,7 @@ def test_schedule_rejects_invalid_input():
 def test_warmup_shorter_than_history_rejected(model):
     gns, params, _ = model
     with pytest.raises(ValueError, match="warmup"):
-        Hybrid(MPM(small_scene()), gns, params, 2, 4, Schedule(warmup=2))
+        Hybrid(MPM(small_scene()), gns, 2, 4, Schedule(warmup=2))
 
 
 def test_lsq_gradient_exact_for_linear_field():
@@ -67,7 +69,7 @@ def test_lsq_gradient_exact_for_linear_field():
 
 def test_handoff_moves_particles_with_their_node_and_sets_F():
     sim = MPM(small_scene())
-    st = sim.init_state()
+    st = sim.init()
     n = st.n_particles
     cluster = jnp.asarray(np.arange(n) % 3)
     counts = jnp.bincount(cluster)
@@ -98,7 +100,7 @@ def test_affine_particle_map_follows_a_linear_node_field():
     (clusters stretch and shear), keeps each cluster's mean on its node, and gives each
     particle the field's velocity at its new position; the rigid map keeps cluster shapes."""
     sim = MPM(small_scene())
-    st = sim.init_state()
+    st = sim.init()
     x = np.asarray(st.x)
     cluster = jnp.asarray((x[0] > np.median(x[0])).astype(np.int32)
                           + 2 * (x[1] > np.median(x[1])))
@@ -128,10 +130,10 @@ def test_affine_particle_map_follows_a_linear_node_field():
 def test_mpm_only_schedule_is_the_mpm(model):
     gns, params, _ = model
     sim = MPM(small_scene())
-    p, st = sim.params(), sim.init_state()
-    hyb = Hybrid(sim, gns, params, 2, 4, Schedule(warmup=5, gns_frames=0, mpm_frames=1))
-    res, _ = hyb.run(p, st, 12)
-    ref = sim.rollout(p, st, 24)
+    p, st = sim.params(), sim.init()
+    hyb = Hybrid(sim, gns, 2, 4, Schedule(warmup=5, gns_frames=0, mpm_frames=1))
+    res, _ = hyb.run(HybridParams(p, params), st, 12)
+    ref, _ = sim.run(p, st, 24)
     np.testing.assert_allclose(res.positions, np.asarray(ref.positions)[::2], atol=1e-6)
     assert np.all(np.asarray(res.mode) == MPM_MODE)
 
@@ -139,35 +141,37 @@ def test_mpm_only_schedule_is_the_mpm(model):
 def test_fixed_schedule_and_gns_frames_match_the_gns(model):
     gns, params, _ = model
     sim = MPM(small_scene())
-    p, st = sim.params(), sim.init_state()
+    p, st = sim.params(), sim.init()
     sched = Schedule(warmup=5, gns_frames=4, mpm_frames=2)
-    hyb = Hybrid(sim, gns, params, 2, 4, sched)
-    res, nbrs = hyb.run(p, st, 20)
+    hyb = Hybrid(sim, gns, 2, 4, sched)
+    hp = HybridParams(p, params)
+    res, start = hyb.run(hp, st, 20)
     np.testing.assert_array_equal(res.mode, modes_of(sched, 20))
     # The first GNS segment is exactly a GNS rollout from the warm-up history.
     nodes = np.asarray(res.nodes)
     hist = jnp.swapaxes(jnp.asarray(nodes[:6]), 0, 1)
-    xs, _ = gns.rollout_safe(params, hist, hyb.node_type, hyb.node_material(p), 4)
-    np.testing.assert_allclose(nodes[6:10], xs, atol=2e-6)
+    frames, _, _ = rollout_safe(gns, GNSParams(params, hyb.node_material(p)),
+                                gns.init(hist, hyb.node_type), 4)
+    np.testing.assert_allclose(nodes[6:10], frames.positions[1:], atol=2e-6)
     # Particles follow their node: node means of the particles are the nodes.
     parts = jnp.asarray(res.positions[9]).T
     np.testing.assert_allclose(hyb.nodes(st.replace(x=parts)), nodes[9], atol=2e-6)
     # A second run reuses the compiled rollout (no recompilation).
-    size = hyb._run._cache_size()
-    hyb.run(p, st, 20, nbrs)
-    assert hyb._run._cache_size() == size
+    size = rollout_jit._cache_size()
+    hyb.run(hp, st, 20, state=start)
+    assert rollout_jit._cache_size() == size
 
 
 def test_adaptive_switch_fires_on_the_indicator(model):
     gns, params, _ = model
     sim = MPM(small_scene(aspect_ratio=1.0))
-    p, st = sim.params(), sim.init_state()
-    loose = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
+    p, st = sim.params(), sim.init()
+    loose = Hybrid(sim, gns, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
                                                       adaptive_tol=1e9))
-    tight = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
+    tight = Hybrid(sim, gns, 2, 4, Schedule(gns_frames=8, mpm_frames=1,
                                                       adaptive_tol=1e-9))
-    r_loose, _ = loose.run(p, st, 30)
-    r_tight, _ = tight.run(p, st, 30)
+    r_loose, _ = loose.run(HybridParams(p, params), st, 30)
+    r_tight, _ = tight.run(HybridParams(p, params), st, 30)
     np.testing.assert_array_equal(r_loose.mode, modes_of(loose.schedule, 30))
     m = np.asarray(r_tight.mode)[5:]
     assert np.all(m[::2] == GNS_MODE) and np.all(m[1::2] == MPM_MODE)  # min segment: 1
@@ -178,9 +182,9 @@ def test_adaptive_switch_fires_on_the_indicator(model):
 def test_long_hybrid_rollout_stays_in_the_box_and_finite(model):
     gns, params, _ = model
     sim = MPM(small_scene(aspect_ratio=2.0, phi=20.0))
-    p, st = sim.params(), sim.init_state()
-    res, _ = Hybrid(sim, gns, params, 2, 4, Schedule(gns_frames=10, mpm_frames=1)).run(
-        p, st, 200)
+    p, st = sim.params(), sim.init()
+    res, _ = Hybrid(sim, gns, 2, 4, Schedule(gns_frames=10, mpm_frames=1)).run(
+        HybridParams(p, params), st, 200)
     x = np.asarray(res.positions)
     assert np.isfinite(x).all()
     lo, hi = np.asarray(sim.lo), np.asarray(sim.hi)
@@ -194,16 +198,16 @@ def test_grad_through_hybrid_matches_finite_differences(model, x64):
     gns, params, _ = model
     params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), params)
     sim = MPM(small_scene(phi=30.0, aspect_ratio=1.0), dtype=jnp.float64)
-    st = sim.init_state()
-    hyb = Hybrid(sim, gns, params, 2, 4, Schedule(warmup=5, gns_frames=3, mpm_frames=2),
-                 checkpoint_block=5)
+    st = sim.init()
+    hyb = Hybrid(sim, gns, 2, 4, Schedule(warmup=5, gns_frames=3, mpm_frames=2))
     p0 = sim.params()
-    nbrs = hyb.run(p0, st, 25)[1]
+    start = hyb.run(HybridParams(p0, params), st, 25)[1]
 
     def loss(phi):
         p = p0.replace(friction_angle=p0.friction_angle.at[0].set(phi))
-        x, _, over = hyb.rollout(p, st, 25, nbrs)
-        return runout(x[-1], method="softmax", temperature=5e-3), over
+        frames, _ = rollout(hyb, HybridParams(p, params), start, 25, checkpoint_block=5)
+        x = frames.positions
+        return runout(x[-1], method="softmax", temperature=5e-3), jnp.any(frames.overflow)
 
     (L, over), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(30.0)
     assert not bool(over)
