@@ -48,11 +48,11 @@ def finite_difference_grad(loss_fn: Callable[[dict], jax.Array], theta: dict,
     parameter, step :func:`fd_step`), for comparison with the AD gradient."""
     f = jax.jit(loss_fn)
     th = {k: jnp.asarray(v) for k, v in theta.items()}
-    out = {}
-    for k, v in theta.items():
-        out[k] = central_difference(lambda x, k=k: f(dict(th, **{k: jnp.asarray(x)})), v,
-                                    fd_step(v, rel_step))
-    return out
+
+    def along(k: str) -> Callable[[float], jax.Array]:
+        return lambda x: f(dict(th, **{k: jnp.asarray(x)}))
+
+    return {k: central_difference(along(k), v, fd_step(v, rel_step)) for k, v in theta.items()}
 
 
 def gradient_check(loss_fn: Callable[[dict], jax.Array], theta: dict,
