@@ -75,12 +75,6 @@ def momentum(v: jax.Array, mass: jax.Array) -> jax.Array:
     return jnp.sum(mass[:, None] * v, -2)
 
 
-def mean_position_error(x: jax.Array, x_ref: jax.Array) -> jax.Array:
-    """Mean particle distance between two configurations of the same particles, m."""
-    d = x - x_ref
-    return jnp.mean(jnp.sqrt(jnp.sum(d * d, -1)), -1)
-
-
 def lube_runout(aspect_ratio):
     """Normalised runout (L_inf - L0)/L0 of Lube et al. (2005) quasi-2D collapses:
     1.2 a for a < 1.8, 1.9 a^(2/3) for a > 2.8 (the larger of the two in between)."""

@@ -9,8 +9,6 @@ its configuration and checkpoint helpers are re-exported here.
 """
 from __future__ import annotations
 
-import time
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -137,16 +135,3 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
         extra = (attempt + 1) * max(1, nbrs[n].idx.shape[1] // (2 * n))
         nbrs[n] = trainer.gns.allocate(jnp.asarray(pos[0, C]), extra_capacity=extra)
     raise RuntimeError(f"neighbour list overflowing after {max_retries} re-allocations")
-
-
-def timed_steps(trainer: Trainer, params, opt_state, batch, nbrs, n: int = 5) -> float:
-    """Median seconds per step on a fixed batch (after one warm-up step)."""
-    key = jax.random.PRNGKey(0)
-    out = trainer.step(params, opt_state, batch, nbrs, key)
-    jax.block_until_ready(out)
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        jax.block_until_ready(trainer.step(params, opt_state, batch, nbrs, key))
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))

@@ -298,18 +298,6 @@ def apply_theta(params, theta: dict):
 MPM_STATE_PARAMS = ("aspect_ratio",)
 
 
-def mpm_final_positions(sim, state, n_frames: int, block: int = 25):
-    """theta -> (N, 2) final positions of an MPM rollout, checkpointed for gradients."""
-    base = sim.params()
-
-    def final(theta):
-        pos, _, _, _ = sim.rollout_full(apply_theta(base, theta), state, n_frames=n_frames,
-                                        checkpoint=True, block=block)
-        return pos[-1]
-
-    return final
-
-
 def frames_to_rest(speed, threshold: float = 0.02, margin: int = 10, multiple: int = 25) -> int:
     """Frames until the per-frame max speed (m/s) stays below ``threshold``, plus a margin,
     rounded up to a multiple of ``multiple``."""
