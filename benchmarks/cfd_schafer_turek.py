@@ -10,22 +10,22 @@ interval. The periodic figures are taken over the last ``--window`` seconds.
         --grading 0.2 --size-wake 0.01 --dt 2.5e-4 --out cfd_schafer_turek_fine.json
 
 Writes ``benchmarks/results/<out>`` (JSON) and a cD/cL plot with the same stem (.png).
-Wall time per simulated second excludes assembly/factorisation (reported as ``setup_s``).
-Run single-threaded (OMP_NUM_THREADS=1) for comparable timings.
+Wall time per simulated second excludes assembly/factorisation (reported as ``setup_s``);
+the whole run's wall and CPU time are reported beside it (``benchmarks/timing.py``). Under
+``benchmarks/protocol.py``; ``--threads 1`` runs it pinned to one core with one BLAS/OpenMP
+thread, for comparable timings.
 """
 from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import protocol
+from timing import measure, no_sync
 
-from _common import RESULTS_DIR, machine_info, use_agg, write_json  # noqa: E402
-
-from diffgns.mesh.analysis import shedding_metrics, shedding_onset  # noqa: E402
-from diffgns.mesh.cfd import FlowParams, run_case  # noqa: E402
-from diffgns.mesh.geometry import ChannelGeometry, build_mesh  # noqa: E402
+from diffgns.mesh.analysis import shedding_metrics, shedding_onset
+from diffgns.mesh.cfd import FlowParams, run_case
+from diffgns.mesh.geometry import ChannelGeometry, build_mesh
 
 TARGETS = dict(strouhal=(0.295, 0.305), cd_max=(3.22, 3.24), cl_max=(0.99, 1.01))
 TOL = dict(strouhal=0.0, cd_max=0.02, cl_max=0.02)
@@ -52,18 +52,18 @@ def main(argv=None) -> int:
     p.add_argument("--standard", action="store_true", help="standard (not rotational) "
                    "pressure correction")
     p.add_argument("--out", default="cfd_schafer_turek.json", help="JSON name or path")
+    protocol.add_arguments(p)
     args = p.parse_args(argv)
-
-    machine = machine_info()
+    run = protocol.start(args, "cfd_schafer_turek")
     mesh = build_mesh(ChannelGeometry(), size_cylinder=args.size_cylinder,
                       size_far=args.size_far, grading=args.grading,
                       size_wake=args.size_wake or None, wake_length=args.wake_length)
     prm = FlowParams(u_max=1.5, nu=1e-3, dt=args.dt, kick=args.kick, kick_time=0.5,
                      rotational=not args.standard)
-    print(f"mesh: {mesh.n_nodes} vertices, {len(mesh.cells)} triangles; dt = {args.dt:g} s; "
-          f"{args.t_end:g} s simulated", flush=True)
-    res = run_case(mesh, prm, args.t_end, frame_dt=args.t_end, record_start=args.t_end,
-                   progress=True)
+    run.print(f"mesh: {mesh.n_nodes} vertices, {len(mesh.cells)} triangles; dt = "
+              f"{args.dt:g} s; {args.t_end:g} s simulated")
+    total, res = measure(lambda: run_case(mesh, prm, args.t_end, frame_dt=args.t_end,
+                                          record_start=args.t_end, progress=True), sync=no_sync)
     met = shedding_metrics(res.times, res.cd, res.cl, args.t_end - args.window, 0.1, 1.0)
     checks = {k: bool(within(k, met[k])) for k in TARGETS}
     summary = dict(
@@ -75,12 +75,22 @@ def main(argv=None) -> int:
         n_periods=met["n_periods"], cl_amplitude_drift=met["cl_amplitude_drift"],
         shedding_onset_s=shedding_onset(res.times, res.cl), max_cfl=res.info["max_cfl"],
         wall_time_s=res.wall_time_s, setup_s=res.setup_s,
-        wall_per_sim_second=res.wall_per_sim_second,
+        wall_per_sim_second=res.wall_per_sim_second, total_wall_s=total.wall_s,
+        total_cpu_s=total.cpu_s,
         ms_per_step=1e3 * res.wall_time_s / res.info["n_steps"],
         targets=TARGETS, tolerance=TOL, within_target=checks, all_within=all(checks.values()))
-    path = write_json(args.out, dict(benchmark="schafer_turek_2d2", summary=summary), machine)
+    payload = dict(case="schafer_turek_2d2", summary=summary)
+    path = run.finish(args.out, payload,
+                      lambda p: plot(res, met, mesh, args, p.with_suffix(".png")))
+    for k in ("n_vertices", "dt", "strouhal", "cd_max", "cl_max", "wall_per_sim_second",
+              "total_cpu_s", "shedding_onset_s", "all_within"):
+        run.print(f"{k:>22s}: {summary[k]}")
+    run.print(f"written {path}")
+    return 0
 
-    plt = use_agg()
+
+def plot(res, met, mesh, args, png) -> None:
+    plt = protocol.use_agg()
     fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     ax[0].plot(res.times, res.cd, lw=0.8)
     ax[0].axhspan(*TARGETS["cd_max"], color="g", alpha=0.3, label="cD,max reference")
@@ -96,14 +106,8 @@ def main(argv=None) -> int:
                     f"St = {met['strouhal']:.4f}, cD,max = {met['cd_max']:.4f}, "
                     f"cL,max = {met['cl_max']:.4f}", fontsize=9)
     fig.tight_layout()
-    png = path.with_suffix(".png") if path.parent != RESULTS_DIR else \
-        RESULTS_DIR / (Path(args.out).stem + ".png")
     fig.savefig(png, dpi=120)
-    for k in ("n_vertices", "dt", "strouhal", "cd_max", "cl_max", "wall_per_sim_second",
-              "shedding_onset_s", "all_within"):
-        print(f"{k:>22s}: {summary[k]}")
-    print(f"written {path} and {png}")
-    return 0
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -2,27 +2,26 @@
 against the MPM (at its stable dt and at the dt = 1e-5 s of the published training data),
 measured in one run on this machine.
 
-    python benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_columns \
+    .venv/bin/python benchmarks/gns_accuracy_speed.py --model models/gns_columns \
         --data data/columns_test.h5 --out benchmarks/results/gns_accuracy_speed.json
 
 The reference for accuracy is the MPM trajectory of each test case, coarse-grained and
-strided exactly as the GNS sees it. Timings are steady-state (compile separated), median of
-``--repeats`` runs, with block_until_ready; the MPM is timed on each case's own scene. The
-GNS and the stable-dt MPM are timed alternately, repeat by repeat, and a case's speed-up is
-the median of its per-repeat ratios, so that a change in a shared machine's load between
-repeats hits both sides; the summary gives the medians over cases.
+strided exactly as the GNS sees it. Timings (``benchmarks/timing.py``, under
+``benchmarks/protocol.py``) are steady-state (first call = compile, timed apart), with
+block_until_ready, wall and CPU time; the MPM is timed on each case's own scene. The GNS and
+the stable-dt MPM are timed in interleaved rounds (order alternating), and a case's speed-up
+is the median of its per-round ratios, so that a change in a shared machine's load hits both
+sides; the summary gives the medians over cases.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
-from functools import partial
 from pathlib import Path
 
-import jax
 import numpy as np
+import protocol
+from timing import interleave, time_call, warm_up_jax
 
 from diffgns import MPM
 from diffgns.graph.data import load_trajectories
@@ -31,84 +30,92 @@ from diffgns.graph.train_loop import load_model
 from diffgns.scene.builders import column_collapse
 
 
-def _seconds(fn) -> float:
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - t0
-
-
-def mpm_runner(scene, n_frames: int):
-    """(compile s, zero-argument function running an MPM rollout of n_frames)."""
+# ---------------------------------------------------------------- simulator calls
+def mpm_call(scene, n_frames: int):
+    """Zero-argument jitted MPM rollout of ``n_frames`` frames of ``scene``."""
     sim = MPM(scene)
     p, s = sim.params(), sim.init_state()
-    run = partial(sim.rollout_full, p, s, n_frames=n_frames)
-    first = _seconds(run)
-    return first - _seconds(run), run
+    return lambda: sim.rollout_full(p, s, n_frames=n_frames)[0]
 
 
-def gns_runner(gns, params, ref):
-    """Zero-argument function running the GNS rollout of :func:`rollout_reference` (compiled,
-    with the neighbour list that the first call sized)."""
+def gns_call(gns, params, ref):
+    """Zero-argument GNS rollout from the first frames of ``ref`` (compiled, with the
+    neighbour list that a first call sized)."""
     hist, ptype, mat, n_steps = reference_inputs(gns, ref)
     _, nbrs = gns.rollout_safe(params, hist, ptype, mat, n_steps)
     return lambda: gns.rollout_safe(params, hist, ptype, mat, n_steps, nbrs)[0]
 
 
-def main():
+def gns_prediction(gns, params, ref):
+    """The GNS trajectory on the frames of ``ref`` (accuracy)."""
+    return rollout_reference(gns, params, ref, timed=False)[0]
+
+
+# ---------------------------------------------------------------- measurement
+def accuracy_rows(run, gns, params, refs, attrs) -> list[dict]:
+    rows = []
+    for ref, at in zip(refs, attrs):
+        row = score(gns_prediction(gns, params, ref), ref, start=gns.config.history)
+        row.update(aspect_ratio=at.get("aspect_ratio"), friction_angle=at.get("friction_angle"),
+                   nodes=ref.n_particles)
+        rows.append(row)
+        run.print(f"a={row['aspect_ratio']} phi={row['friction_angle']}: runout err "
+                  f"{row['runout_rel_error']:.3f}, final pos err/disp "
+                  f"{row['final_position_error_rel_displacement']:.3f}")
+    return rows
+
+
+def speed_of_case(gns, params, ref, kw: dict, repeats: int, mpm5_frames: int) -> dict:
+    """Cost per simulated second of the GNS and the MPM on one case's own scene."""
+    scene = column_collapse(**kw)
+    n = 100
+    gns_sim_s = (ref.n_frames - gns.config.history - 1) * ref.frame_dt
+    mpm_sim_s = n * scene.frame_dt
+    res = interleave({"gns": gns_call(gns, params, ref), "mpm": mpm_call(scene, n)}, repeats)
+    tg, tm = res.summary("gns"), res.summary("mpm")
+    scene5 = column_collapse(**kw, dt=1e-5)
+    t5 = time_call(mpm_call(scene5, mpm5_frames), max(1, repeats - 2))[0]
+    g = tg["median_s"] / gns_sim_s
+    return dict(
+        gns_s=tg["median_s"], gns_s_per_sim_s=g, gns_timing=tg,
+        mpm_particles=scene.n_particles, mpm_substeps_stable=scene.substeps,
+        mpm_stable_s_per_sim_s=tm["median_s"] / mpm_sim_s, mpm_stable_timing=tm,
+        mpm_stable_compile_s=tm["compile_s"], mpm_dt1e5_substeps=scene5.substeps,
+        mpm_dt1e5_s_per_sim_s=t5["median_s"] / (mpm5_frames * scene.frame_dt),
+        mpm_dt1e5_timing=t5, rounds=res.to_json()["rounds"],
+        # median over rounds of (t_mpm / sim s) / (t_gns / sim s)
+        speedup_vs_mpm_stable=res.ratio("mpm", "gns") * gns_sim_s / mpm_sim_s,
+        speedup_vs_mpm_dt1e5=t5["median_s"] / (mpm5_frames * scene.frame_dt) / g)
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default="src/diffgns/models/gns_columns")
+    ap.add_argument("--model", default="models/gns_columns")
     ap.add_argument("--data", default="data/columns_test.h5")
     ap.add_argument("--out", default="benchmarks/results/gns_accuracy_speed.json")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="interleaved rounds per case")
+    ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
     ap.add_argument("--mpm-1e-5-frames", type=int, default=40,
                     help="frames timed for the dt = 1e-5 s MPM (cost scales linearly)")
-    args = ap.parse_args()
-
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "gns_accuracy_speed")
+    warm_up_jax()
     gns, params, info = load_model(args.model)
     factor, stride = info.get("factor", 1), info.get("frame_stride", 1)
     refs, _ = load_trajectories(args.data, factor, stride)
     attrs = _attrs(args.data)
-    rows = []
-    for ref, at in zip(refs, attrs):
-        pred, _ = rollout_reference(gns, params, ref, timed=False)
-        row = score(pred, ref, start=gns.config.history)
-        row.update(aspect_ratio=at.get("aspect_ratio"), friction_angle=at.get("friction_angle"),
-                   nodes=ref.n_particles)
-        rows.append(row)
-        print(f"a={row['aspect_ratio']} phi={row['friction_angle']}: runout err "
-              f"{row['runout_rel_error']:.3f}, final pos err/disp "
-              f"{row['final_position_error_rel_displacement']:.3f}", flush=True)
-    # Cost per simulated second on every case's own scene (same run, same machine). The GNS
-    # and the stable-dt MPM are timed alternately, repeat by repeat, so that a change in the
-    # machine's load hits both; a case's speed-up is the median of its per-repeat ratios.
+    refs, attrs = refs[: args.cases], attrs[: args.cases]
+    rows = accuracy_rows(run, gns, params, refs, attrs)
     meta = json.loads(Path(args.data).with_suffix(".metadata.json").read_text())
     for row, at, ref in zip(rows, attrs, refs):
         kw = dict(width=meta.get("width", 0.1), aspect_ratio=at["aspect_ratio"],
                   friction_angle=at["friction_angle"], cells_across=meta.get("cells_across", 8),
                   domain_length=0.8, domain_height=0.35)
-        scene = column_collapse(**kw)
-        n = 100
-        gns_run = gns_runner(gns, params, ref)
-        gns_sim_s = (ref.n_frames - gns.config.history - 1) * ref.frame_dt
-        c_stable, mpm_run = mpm_runner(scene, n)
-        tg, tm = [], []
-        for _ in range(args.repeats):
-            tg.append(_seconds(gns_run) / gns_sim_s)
-            tm.append(_seconds(mpm_run) / (n * scene.frame_dt))
-        scene5 = column_collapse(**kw, dt=1e-5)
-        c5, mpm5_run = mpm_runner(scene5, args.mpm_1e_5_frames)
-        t5 = float(np.median([_seconds(mpm5_run) for _ in range(max(1, args.repeats - 2))]))
-        g = float(np.median(tg))
-        row.update(gns_s=g * gns_sim_s, gns_s_per_sim_s=g, gns_s_per_sim_s_repeats=tg,
-                   mpm_particles=scene.n_particles, mpm_substeps_stable=scene.substeps,
-                   mpm_stable_s_per_sim_s=float(np.median(tm)), mpm_stable_repeats=tm,
-                   mpm_stable_compile_s=c_stable, mpm_dt1e5_substeps=scene5.substeps,
-                   mpm_dt1e5_s_per_sim_s=t5 / (args.mpm_1e_5_frames * scene.frame_dt))
-        row["speedup_vs_mpm_stable"] = float(np.median(np.array(tm) / np.array(tg)))
-        row["speedup_vs_mpm_dt1e5"] = row["mpm_dt1e5_s_per_sim_s"] / g
-        print(f"a={at['aspect_ratio']}: MPM {row['mpm_stable_s_per_sim_s']:.2f} s/sim-s "
-              f"(stable dt), {row['mpm_dt1e5_s_per_sim_s']:.2f} (dt=1e-5); GNS "
-              f"{row['gns_s_per_sim_s']:.2f}", flush=True)
+        row.update(speed_of_case(gns, params, ref, kw, args.repeats, args.mpm_1e_5_frames))
+        run.print(f"a={at['aspect_ratio']}: MPM {row['mpm_stable_s_per_sim_s']:.2f} s/sim-s "
+                  f"(stable dt), {row['mpm_dt1e5_s_per_sim_s']:.2f} (dt=1e-5); GNS "
+                  f"{row['gns_s_per_sim_s']:.2f}; speed-up {row['speedup_vs_mpm_stable']:.1f}x")
     mpm = dict(cells_across=meta.get("cells_across", 8),
                stable_s_per_sim_s=[r["mpm_stable_s_per_sim_s"] for r in rows],
                dt1e5_s_per_sim_s=[r["mpm_dt1e5_s_per_sim_s"] for r in rows])
@@ -120,12 +127,11 @@ def main():
         gns_s_per_sim_s=float(np.median([r["gns_s_per_sim_s"] for r in rows])),
         speedup_vs_mpm_stable=float(np.median([r["speedup_vs_mpm_stable"] for r in rows])),
         speedup_vs_mpm_dt1e5=float(np.median([r["speedup_vs_mpm_dt1e5"] for r in rows])))
-    out = dict(command=" ".join(sys.argv), model=args.model, model_info=info.get("gns"),
-               factor=factor, frame_stride=stride, rows=rows, mpm=mpm, summary=summary,
-               devices=str(jax.devices()), date=time.strftime("%Y-%m-%d %H:%M"))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2, default=float))
-    print(json.dumps(dict(mpm=mpm, summary=summary), indent=2))
+    payload = dict(model=args.model, data=args.data, model_info=info.get("gns"),
+                   factor=factor, frame_stride=stride, rows=rows, mpm=mpm, summary=summary)
+    path = run.finish(args.out, payload)
+    run.print(json.dumps(dict(mpm=mpm, summary=summary), indent=2))
+    run.print(f"wrote {path}")
 
 
 def _attrs(path):

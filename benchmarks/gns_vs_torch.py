@@ -1,8 +1,10 @@
 """Inference cost of one GNS step: diffgns (JAX) vs a PyTorch/PyG GNS written here.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/gns_vs_torch.py [--repeats 12]
+    .venv/bin/python benchmarks/gns_vs_torch.py [--repeats 12] [--sides 22 32 45]
+        [--threads both]
 
-Problem (shared by both sides, float32): a 45 x 45 block of particles (N = 2025) on a
+Problem (shared by both sides, float32): a side x side block of particles (``--sides``;
+45 x 45 = 2025 by default, 22 and 32 give N = 484 and 1024) on a
 square lattice of spacing h = R / 2.5 with R = 0.015 m, slightly jittered, in the
 reference sand box ``[0.1, 0.9]^2``; a 6-frame position history (5 velocities) from a
 small random walk; particle type 6 except the bottom row (type 3, kinematic); material
@@ -34,10 +36,14 @@ normalisers; semi-implicit Euler in frame units, kinematic particles held.
 Both models are checked to compute the same function: the flax parameters are copied into
 the torch model and the accelerations compared (they agree to float32 round-off).
 
-Timing: after warm-up, ``--repeats`` rounds; each round times one call of every measured
-function, the two implementations interleaved and the order alternated round by round, so
-both see the same background load. Medians, min/max, raw samples, per-round paired ratios
-and the load average are stored. JAX compile time = first call - median steady call.
+Timing (``benchmarks/protocol.py``, ``benchmarks/timing.py``): the first call of each
+function timed apart (JAX compile = first call - median steady call), then ``--repeats``
+interleaved rounds: each round times one call of diffgns and of torch, the order alternating
+round by round, so both see the same background load. Ratio = diffgns time / torch time,
+median of the per-round ratios; every round, wall and CPU time, is stored. With
+``--threads both`` (the default) the whole comparison runs with 2 threads (XLA's default,
+``torch.set_num_threads(2)``), then in a child process pinned to one core with one thread on
+both sides, and the report gives both ratios.
 If diffgns misses the target (step <= 0.5 x torch step at the reference config), or with
 ``--profile always``, the reference config is profiled: neighbour update, features, encoder,
 processor steps, decoder, single-kernel timings of one interaction step (matmuls, gathers,
@@ -49,16 +55,14 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import statistics
-import time
 
 import numpy as np
-from _common import block, machine_info, summary, timed, warm_up_jax, write_json
+import protocol
+from timing import block, interleave, measure, no_sync, time_call, warm_up_jax
 
 RADIUS = 0.015
 SPACING = RADIUS / 2.5
-SIDE = 45
+SIDE = 45  # default: N = 2025
 BOUNDS = ((0.1, 0.9), (0.1, 0.9))
 HISTORY = 5
 N_TYPES = 9
@@ -72,10 +76,10 @@ TARGET_RATIO = 0.5
 
 
 # ============================================================================ scene
-def make_scene(seed: int = 0):
-    """(history (N, 6, 2) float32, particle_type (N,) int32, material (N,) float32)."""
+def make_scene(side: int = SIDE, seed: int = 0):
+    """(history (N, 6, 2) float32, particle_type (N,) int32, material (N,) float32), N = side^2."""
     rng = np.random.default_rng(seed)
-    g = np.arange(SIDE) * SPACING
+    g = np.arange(side) * SPACING
     gx, gy = np.meshgrid(g, g, indexing="ij")
     x0 = np.stack([gx.ravel(), gy.ravel()], axis=1) + BOUNDS[0][0] + 0.5 * SPACING
     x0 = x0 + rng.uniform(-0.02, 0.02, x0.shape) * SPACING  # far from the R thresholds
@@ -244,12 +248,6 @@ def load_flax_params(model, params: dict) -> None:
 
 
 # ============================================================================ helpers
-def median_of(fn, repeats: int, sync=block) -> dict:
-    sync(fn())
-    runs = [timed(fn, sync)[:2] for _ in range(repeats)]
-    return summary([w for w, _ in runs], [c for _, c in runs])
-
-
 def mac_counts(latent: int, mp_steps: int, n: int, e_torch: int, e_jax: int) -> dict:
     """Multiply-accumulates of the dense layers (dominant cost) of each implementation."""
     L, h = latent, MLP_LAYERS - 1
@@ -266,60 +264,68 @@ def mac_counts(latent: int, mp_steps: int, n: int, e_torch: int, e_jax: int) -> 
 
 
 # ============================================================================ main
-def run_config(name, latent, mp_steps, scene, args, torch, jax, jnp):
+def diffgns_gns(latent: int, mp_steps: int, scene, jax, jnp) -> dict:
+    """The diffgns side: GNS, parameters, neighbour list, edges and the two jitted calls
+    (*step*: neighbour update + features + network + Euler; *network*: features + network
+    on precomputed edges). The one place this benchmark calls the simulator's API."""
     from diffgns.graph.features import Normalizers
     from diffgns.graph.gns import GNS, GNSConfig
     from diffgns.graph.neighbors import capacity, did_overflow, edges
 
-    history_np, ptype_np, material_np = scene
-    n = history_np.shape[0]
-    load_before = list(os.getloadavg())
+    n = scene[0].shape[0]
     gns = GNS(GNSConfig(latent=latent, mp_steps=mp_steps, mlp_layers=MLP_LAYERS,
                         radius=RADIUS, bounds=BOUNDS), Normalizers.identity())
     history, ptype, material = (jnp.asarray(a) for a in scene)
     params = gns.init(jax.random.PRNGKey(0), (history, ptype, material))
     nbrs = gns.allocate(history[:, -1])
     senders, receivers, mask = edges(nbrs, n)
-    n_valid = int(np.asarray(mask).sum())
+    step_jit, net_jit = jax.jit(gns.step), jax.jit(gns.acceleration)
+    return dict(
+        gns=gns, params=params, history=history, ptype=ptype, material=material, nbrs=nbrs,
+        senders=senders, receivers=receivers, mask=mask, capacity=capacity(nbrs),
+        overflowed=lambda out: bool(did_overflow(out[1])),
+        step=lambda: step_jit(params, history, ptype, material, nbrs),
+        network=lambda: net_jit(params, history, ptype, material, senders, receivers, mask))
 
-    step_jit = jax.jit(gns.step)
-    net_jit = jax.jit(gns.acceleration)
-    jax_step = lambda: step_jit(params, history, ptype, material, nbrs)
-    jax_net = lambda: net_jit(params, history, ptype, material, senders, receivers, mask)
-    w_step, _, (x_next_jax, nbrs_out) = timed(jax_step)
-    w_net, _, acc_jax = timed(jax_net)
-    if bool(did_overflow(nbrs_out)):
-        raise RuntimeError("neighbour list overflowed in the benchmark step")
 
-    model = build_torch_gns(latent, mp_steps)
-    th, tp, tm = (torch.from_numpy(a) for a in (history_np, ptype_np.astype(np.int64),
-                                                 material_np))
-    edge_index, graph_method = torch_radius_graph(torch, th[:, -1], RADIUS)
-    jax_set = set(zip(np.asarray(senders)[np.asarray(mask)].tolist(),
-                      np.asarray(receivers)[np.asarray(mask)].tolist()))
-    torch_set = set(zip(edge_index[0].tolist(), edge_index[1].tolist()))
-
-    equivalence: dict = {}
+def check_equivalence(model, params, th, tp, tm, edge_index, acc_jax, x_next_jax, torch):
+    """Copy the flax weights into the torch model and compare accelerations."""
     try:
         load_flax_params(model, params)
         with torch.no_grad():
             acc_t = model(th, tp, tm, edge_index).numpy()
             x_next_t = model.step(th, tp, tm)[0].numpy()
-        scale = float(np.abs(np.asarray(acc_jax)).max())
-        equivalence = {
-            "params_copied": True,
-            "max_abs_diff_acceleration": float(np.abs(acc_t - np.asarray(acc_jax)).max()),
-            "max_abs_acceleration": scale,
-            "max_abs_diff_next_position": float(
-                np.abs(x_next_t - np.asarray(x_next_jax)).max()),
-        }
-        equivalence["same_function"] = equivalence["max_abs_diff_acceleration"] <= 1e-4 * max(
-            scale, 1.0)
     except (KeyError, IndexError, TypeError, ValueError, RuntimeError) as err:
-        equivalence = {"params_copied": False, "reason": repr(err)}
+        return {"params_copied": False, "reason": repr(err)}
+    scale = float(np.abs(np.asarray(acc_jax)).max())
+    eq = {"params_copied": True,
+          "max_abs_diff_acceleration": float(np.abs(acc_t - np.asarray(acc_jax)).max()),
+          "max_abs_acceleration": scale,
+          "max_abs_diff_next_position": float(np.abs(x_next_t - np.asarray(x_next_jax)).max())}
+    eq["same_function"] = eq["max_abs_diff_acceleration"] <= 1e-4 * max(scale, 1.0)
+    return eq
 
-    def torch_sync(out):
-        return out
+
+def run_config(latent, mp_steps, scene, args, torch, jax, jnp):
+    history_np, ptype_np, material_np = scene
+    n = history_np.shape[0]
+    d = diffgns_gns(latent, mp_steps, scene, jax, jnp)
+    first_step, (x_next_jax, nbrs_out) = measure(d["step"])
+    first_net, acc_jax = measure(d["network"])
+    if d["overflowed"]((x_next_jax, nbrs_out)):
+        raise RuntimeError("neighbour list overflowed in the benchmark step")
+    senders, mask = np.asarray(d["senders"]), np.asarray(d["mask"])
+    receivers = np.asarray(d["receivers"])
+    n_valid = int(mask.sum())
+
+    model = build_torch_gns(latent, mp_steps)
+    th, tp, tm = (torch.from_numpy(a) for a in (history_np, ptype_np.astype(np.int64),
+                                                 material_np))
+    edge_index, graph_method = torch_radius_graph(torch, th[:, -1], RADIUS)
+    jax_set = set(zip(senders[mask].tolist(), receivers[mask].tolist()))
+    torch_set = set(zip(edge_index[0].tolist(), edge_index[1].tolist()))
+    equivalence = check_equivalence(model, d["params"], th, tp, tm, edge_index, acc_jax,
+                                     x_next_jax, torch)
 
     def torch_step():
         with torch.no_grad():
@@ -330,55 +336,37 @@ def run_config(name, latent, mp_steps, scene, args, torch, jax, jnp):
             return model(th, tp, tm, edge_index)
 
     for _ in range(args.warmup):
-        block(jax_step())
-        block(jax_net())
+        block(d["step"]())
+        block(d["network"]())
         torch_step()
         torch_fwd()
-
-    pairs = {"step": (jax_step, torch_step), "network": (jax_net, torch_fwd)}
-    walls = {f"{impl}_{part}": [] for impl in ("diffgns", "torch") for part in pairs}
-    cpus = {k: [] for k in walls}
-    for r in range(args.repeats):
-        for part, (fj, ft) in pairs.items():
-            order = [("diffgns", fj, block), ("torch", ft, torch_sync)]
-            if r % 2:
-                order.reverse()
-            for impl, fn, sync in order:
-                w, c, _ = timed(fn, sync)
-                walls[f"{impl}_{part}"].append(w)
-                cpus[f"{impl}_{part}"].append(c)
-    timings = {k: summary(walls[k], cpus[k]) for k in walls}
-    timings["diffgns_step"]["first_call_s"] = w_step
-    timings["diffgns_step"]["compile_s"] = max(0.0, w_step - timings["diffgns_step"]["median_s"])
-    timings["diffgns_network"]["first_call_s"] = w_net
-    timings["diffgns_network"]["compile_s"] = max(
-        0.0, w_net - timings["diffgns_network"]["median_s"])
-    ratios = {}
-    for part in pairs:
-        a, b = walls[f"diffgns_{part}"], walls[f"torch_{part}"]
-        ratios[part] = {
-            "ratio_of_medians": statistics.median(a) / statistics.median(b),
-            "median_paired_ratio": statistics.median(x / y for x, y in zip(a, b)),
-        }
+    timings, ratios, rounds = {}, {}, {}
+    for part, (fj, ft) in {"step": (d["step"], torch_step),
+                           "network": (d["network"], torch_fwd)}.items():
+        res = interleave({"diffgns": fj, "torch": ft}, args.repeats,
+                         sync={"diffgns": block, "torch": no_sync}, warmup=False)
+        timings[f"diffgns_{part}"] = res.summary("diffgns")
+        timings[f"torch_{part}"] = res.summary("torch")
+        ratios[part] = {"median_paired_ratio": res.ratio("diffgns", "torch"),
+                        "median_paired_cpu_ratio": res.ratio("diffgns", "torch", cpu=True),
+                        "ratio_of_medians": timings[f"diffgns_{part}"]["median_s"]
+                        / timings[f"torch_{part}"]["median_s"]}
+        rounds[part] = res.to_json()["rounds"]
+    for part, first in (("step", first_step), ("network", first_net)):
+        t = timings[f"diffgns_{part}"]
+        t.update(first_call_s=first.wall_s, first_call_cpu_s=first.cpu_s,
+                 compile_s=max(0.0, first.wall_s - t["median_s"]))
     return {
-        "latent": latent, "mp_steps": mp_steps, "mlp_layers": MLP_LAYERS,
-        "n_particles": n,
-        "edges_incl_self": n_valid,
-        "mean_neighbours_incl_self": n_valid / n,
+        "latent": latent, "mp_steps": mp_steps, "mlp_layers": MLP_LAYERS, "n_particles": n,
+        "edges_incl_self": n_valid, "mean_neighbours_incl_self": n_valid / n,
         "diffgns_edge_slots_incl_self": int(senders.shape[0]),
-        "diffgns_capacity_no_self": capacity(nbrs),
-        "torch_edges": int(edge_index.shape[1]),
-        "edge_sets_equal": jax_set == torch_set,
-        "torch_graph_method": graph_method,
+        "diffgns_capacity_no_self": d["capacity"], "torch_edges": int(edge_index.shape[1]),
+        "edge_sets_equal": jax_set == torch_set, "torch_graph_method": graph_method,
         "equivalence": equivalence,
-        "macs": mac_counts(latent, mp_steps, n, int(edge_index.shape[1]),
-                           int(senders.shape[0])),
-        "timings": timings,
-        "ratios": ratios,
-        "loadavg_before": load_before,
-        "loadavg_after": list(os.getloadavg()),
-        "_objects": (gns, params, history, ptype, material, nbrs, model, th, tp, tm,
-                     edge_index),
+        "macs": mac_counts(latent, mp_steps, n, int(edge_index.shape[1]), int(senders.shape[0])),
+        "timings": timings, "ratios": ratios, "rounds": rounds,
+        "_objects": (d["gns"], d["params"], d["history"], d["ptype"], d["material"], d["nbrs"],
+                     model, th, tp, tm, edge_index),
     }
 
 
@@ -398,7 +386,7 @@ def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
                          "inside the whole step, so they need not add up exactly"}
 
     def ms(fn):
-        return 1e3 * median_of(fn, repeats)["median_s"]
+        return 1e3 * time_call(fn, repeats)[0]["median_s"]
 
     # -- step decomposition
     nb_fn = jax.jit(lambda x, nb: edges(gns.neighbors.update(x, nb), n))
@@ -482,12 +470,8 @@ def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
     fns = {k: variant(g) for k, g in graphs.items()}
     ref_out = np.asarray(next(iter(fns.values()))())
     dev = {k: float(np.abs(np.asarray(fn()) - ref_out).max()) for k, fn in fns.items()}
-    samples = {k: [] for k in fns}
-    for i in range(repeats):
-        names = list(fns) if i % 2 == 0 else list(fns)[::-1]
-        for k in names:
-            samples[k].append(timed(fns[k])[0])
-    out["network_variants_ms"] = {k: 1e3 * statistics.median(v) for k, v in samples.items()}
+    res = interleave(fns, repeats, warmup=False)
+    out["network_variants_ms"] = {k: 1e3 * res.summary(k)["median_s"] for k in fns}
     out["network_variants_max_abs_dev_from_padded"] = dev
     out["edge_slots"] = {"padded": int(s.shape[0]), "valid": int(cs.shape[0])}
 
@@ -500,105 +484,116 @@ def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
 
 
 def ms_torch(fn, repeats):
-    return 1e3 * median_of(fn, repeats, sync=lambda o: o)["median_s"]
+    return 1e3 * time_call(fn, repeats, sync=no_sync)[0]["median_s"]
 
 
-def print_table(results: dict) -> None:
-    head = (f"{'config':<20} {'part':<8} {'diffgns ms':>11} {'torch ms':>9} "
-            f"{'ratio':>6} {'paired':>7} {'cpu ratio':>9} {'JAX compile s':>14}")
-    print(head)
-    print("-" * len(head))
+def print_table(run: protocol.Run, results: dict) -> None:
+    head = (f"{'config':<22} {'part':<8} {'diffgns ms':>11} {'torch ms':>9} "
+            f"{'ratio':>6} {'cpu ratio':>9} {'JAX compile s':>14}")
+    run.print(head)
     for name, res in results.items():
-        label = f"{name} L{res['latent']}/MP{res['mp_steps']}"
         for part in ("step", "network"):
             tj = res["timings"][f"diffgns_{part}"]
             tt = res["timings"][f"torch_{part}"]
             rr = res["ratios"][part]
-            print(f"{label:<20} {part:<8} {1e3 * tj['median_s']:>11.1f} "
-                  f"{1e3 * tt['median_s']:>9.1f} {rr['ratio_of_medians']:>6.2f} "
-                  f"{rr['median_paired_ratio']:>7.2f} "
-                  f"{tj['cpu_median_s'] / tt['cpu_median_s']:>9.2f} {tj['compile_s']:>14.2f}")
+            run.print(f"{name:<22} {part:<8} {1e3 * tj['median_s']:>11.1f} "
+                      f"{1e3 * tt['median_s']:>9.1f} {rr['median_paired_ratio']:>6.2f} "
+                      f"{rr['median_paired_cpu_ratio']:>9.2f} {tj['compile_s']:>14.2f}")
+    run.print("ratio = diffgns time / torch time, median of the per-round ratios (wall; CPU)")
     for name, res in results.items():
-        print(f"{name}: N={res['n_particles']}, edges incl. self={res['edges_incl_self']} "
-              f"(mean {res['mean_neighbours_incl_self']:.2f}/particle; diffgns slots "
-              f"{res['diffgns_edge_slots_incl_self']}), torch edges={res['torch_edges']}, "
-              f"same edge set={res['edge_sets_equal']}, same function="
-              f"{res['equivalence'].get('same_function')}, load "
-              f"{res['loadavg_before'][0]:.2f}->{res['loadavg_after'][0]:.2f}")
+        run.print(f"{name}: N={res['n_particles']}, edges incl. self={res['edges_incl_self']} "
+                  f"(mean {res['mean_neighbours_incl_self']:.2f}/particle; diffgns slots "
+                  f"{res['diffgns_edge_slots_incl_self']}), torch edges={res['torch_edges']}, "
+                  f"same edge set={res['edge_sets_equal']}, same function="
+                  f"{res['equivalence'].get('same_function')}")
+
+
+def print_profile(run: protocol.Run, profile: dict) -> None:
+    run.print(f"diffgns profile ({profile['config']} config, ms):")
+    for k, val in profile.items():
+        if isinstance(val, dict):
+            for kk, vv in val.items():
+                fmt = ".1e" if k.endswith("_from_padded") else ".1f"
+                run.print(f"  {k}: {kk}: {vv:{fmt}}" if isinstance(vv, float)
+                          else f"  {k}: {kk}: {vv}")
+        elif isinstance(val, float):
+            run.print(f"  {k}: {val:.1f}")
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=12, help="timed rounds (>= 10)")
     ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--sides", type=int, nargs="+", default=[SIDE],
+                    help="particles per side of the block (N = side^2)")
     ap.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
     ap.add_argument("--profile", choices=("auto", "always", "never"), default="auto",
                     help="profile diffgns at the reference config (auto: if it misses)")
     ap.add_argument("--profile-repeats", type=int, default=7)
     ap.add_argument("--out", default="gns_vs_torch.json")
+    protocol.add_arguments(ap, threads="both")
     args = ap.parse_args(argv)
+    run = protocol.start(args, "gns_vs_torch")
 
     import jax
     import jax.numpy as jnp
     import torch
 
-    torch.set_num_threads(2)
-    machine = machine_info()
-    machine["torch"] = torch.__version__
-    machine["torch_threads"] = torch.get_num_threads()
-    try:
-        import torch_geometric
-
-        machine["torch_geometric"] = torch_geometric.__version__
-    except ImportError:  # pragma: no cover
-        machine["torch_geometric"] = None
+    torch.set_num_threads(run.threads)
     warm_up_jax()
-
-    scene = make_scene()
     results = {}
-    t0 = time.perf_counter()
-    for name in args.configs:
-        latent, mp_steps = CONFIGS[name]
-        results[name] = run_config(name, latent, mp_steps, scene, args, torch, jax, jnp)
 
+    def body():
+        for side in args.sides:
+            scene = make_scene(side)
+            for name in args.configs:
+                latent, mp_steps = CONFIGS[name]
+                results[f"{name}_N{side * side}"] = run_config(latent, mp_steps, scene, args,
+                                                               torch, jax, jnp)
+
+    total = measure(body, sync=no_sync)[0]
+    ref_key = f"reference_N{max(args.sides) ** 2}"
+    ref = results.get(ref_key)
+    missed = ref is not None and ref["ratios"]["step"]["median_paired_ratio"] > TARGET_RATIO
     profile = None
-    ref = results.get("reference")
-    missed = ref is not None and ref["ratios"]["step"]["ratio_of_medians"] > TARGET_RATIO
     if args.profile == "always" or (args.profile == "auto" and missed):
-        prof_name = "reference" if ref is not None else args.configs[0]
-        profile = {"config": prof_name, **profile_diffgns(
-            results[prof_name], args.profile_repeats, torch, jax, jnp)}
-
+        key = ref_key if ref is not None else next(iter(results))
+        profile = {"config": key, **profile_diffgns(results[key], args.profile_repeats,
+                                                     torch, jax, jnp)}
     for res in results.values():
         res.pop("_objects")
-    print_table(results)
+    print_table(run, results)
     if ref is not None:
-        print(f"target diffgns step <= {TARGET_RATIO} x torch step (reference): "
-              f"{'met' if not missed else 'MISSED'} "
-              f"({ref['ratios']['step']['ratio_of_medians']:.2f})")
+        run.print(f"target diffgns step <= {TARGET_RATIO} x torch step ({ref_key}): "
+                  f"{'met' if not missed else 'MISSED'} "
+                  f"({ref['ratios']['step']['median_paired_ratio']:.2f})")
     if profile is not None:
-        print(f"diffgns profile ({profile['config']} config, ms):")
-        for k, val in profile.items():
-            if isinstance(val, dict):
-                for kk, vv in val.items():
-                    fmt = ".1e" if k.endswith("_from_padded") else ".1f"
-                    print(f"  {k}: {kk}: {vv:{fmt}}" if isinstance(vv, float)
-                          else f"  {k}: {kk}: {vv}")
-            elif isinstance(val, float):
-                print(f"  {k}: {val:.1f}")
+        print_profile(run, profile)
     payload = {
-        "benchmark": "gns_vs_torch",
         "description": __doc__.split("\n\n")[2].strip(),
-        "scene": {"radius_m": RADIUS, "lattice_spacing_m": SPACING, "side": SIDE,
+        "scene": {"radius_m": RADIUS, "lattice_spacing_m": SPACING, "sides": args.sides,
                   "bounds": BOUNDS, "history_velocities": HISTORY, "n_types": N_TYPES,
                   "type_embed": TYPE_EMBED, "material": "tan(30 deg)"},
+        "torch_threads": torch.get_num_threads(),
         "repeats": args.repeats, "warmup": args.warmup, "target_ratio": TARGET_RATIO,
         "target_met": (not missed) if ref is not None else None,
         "configs": results, "profile": profile,
-        "wall_time_s": time.perf_counter() - t0,
+        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s,
     }
-    path = write_json(args.out, payload, machine)
-    print(f"wrote {path}")
+    if run.mode == "both":
+        one = payload["one_thread_pinned"] = run.pinned_child()
+        payload["ratios_step"] = {
+            k: {"2_threads": r["ratios"]["step"]["median_paired_ratio"],
+                "1_thread_pinned": one.get("configs", {}).get(k, {}).get("ratios", {})
+                .get("step", {}).get("median_paired_ratio")} for k, r in results.items()}
+        for k, r in payload["ratios_step"].items():
+            r1 = r["1_thread_pinned"]
+            run.print(f"{k}: step time diffgns / torch: 2 threads {r['2_threads']:.2f}; "
+                      "1 thread pinned " + ("refused (load)" if r1 is None else f"{r1:.2f}")
+                      + ("" if one.get("valid", False) else " INVALID (pinned run loaded)"),
+                      tag=False)
+    path = run.finish(args.out, payload)
+    run.print(f"wrote {path}")
 
 
 if __name__ == "__main__":

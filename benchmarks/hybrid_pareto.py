@@ -6,14 +6,15 @@ On held-out column collapses (aspect ratios and friction angles not in the GNS t
 set), every simulator is scored against a fine MPM reference (``--reference-cells`` cells
 across the column): final runout error and the material-point position error (mean over
 particles and frames; see ``diffgns.hybrid.compare``). Wall time is the steady-state time of
-the jitted rollout (compile separated, median of ``--repeats``, block_until_ready), summed
-over the cases. The Pareto front (mean position error against time) is marked in the table
-and the plot (``hybrid_pareto.png``). Every run is also scored against the MPM at the finest
-of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16`` and ``gns_cg16_pf`` were trained to
-emulate and that their hybrids run): for those models that isolates the learned error, which
-the hybrid's MPM frames correct, from the discretisation error that they share with that MPM.
-A second Pareto front is drawn on these "own-MPM" errors (the 16-cell MPM itself, with zero
-error, is not a candidate).
+the jitted rollout (``benchmarks/timing.py``: first call = compile, timed apart; median of
+``--repeats``; block_until_ready; CPU time beside it), summed over the cases, under
+``benchmarks/protocol.py``. The Pareto front (mean position error against time) is marked in
+the table and the plot (``hybrid_pareto.png``). Every run is also scored against the MPM at
+the finest of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16`` and ``gns_cg16_pf`` were
+trained to emulate and that their hybrids run): for those models that isolates the learned
+error, which the hybrid's MPM frames correct, from the discretisation error that they share
+with that MPM. A second Pareto front is drawn on these "own-MPM" errors (the 16-cell MPM
+itself, with zero error, is not a candidate).
 
 The target of issue 5 is checked on both fronts and recorded under ``target``: a hybrid on
 the front with less than half the error of the GNS it runs (same model, same reference).
@@ -21,23 +22,16 @@ the front with less than half the error of the GNS it runs (same model, same ref
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
+import protocol
+from timing import block, measure, time_call, warm_up_jax
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS_DIR, command_line, use_agg, warm_up_jax, write_json  # noqa: E402
-
-from diffgns.graph.train_loop import load_model  # noqa: E402
-from diffgns.hybrid.compare import (  # noqa: E402
-    column_scene,
-    model_cells,
-    run_hybrid,
-    run_mpm,
-    score_against,
-)
-from diffgns.hybrid.simulator import Schedule  # noqa: E402
+from diffgns import MPM
+from diffgns.graph.train_loop import load_model
+from diffgns.hybrid.compare import column_scene, model_cells, node_factor, score_against
+from diffgns.hybrid.simulator import Hybrid, Schedule
 
 CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
 
@@ -56,6 +50,30 @@ def schedules(quick: bool):
 SHORT = [(0, 1), (2, 5), (4, 4)]  # (K, M) of the schedules run for the other models
 
 
+# ---------------------------------------------------------------- simulator calls
+def run_mpm(scene, n_frames: int, stride: int, repeats: int):
+    """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
+    sim = MPM(scene)
+    p, s = sim.params(), sim.init_state()
+    t, pos = time_call(lambda: sim.rollout_full(p, s, n_frames=n_frames * stride)[0], repeats)
+    return np.asarray(pos)[::stride], dict(seconds=t["median_s"], substeps_per_frame=sim.n_sub,
+                                           **t)
+
+
+def run_hybrid(scene, gns, gp, info: dict, schedule: Schedule, n_frames: int, repeats: int):
+    """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames; the
+    first call (compile + neighbour-list sizing) is timed apart."""
+    sim = MPM(scene)
+    p, s = sim.params(), sim.init_state()
+    hyb = Hybrid(sim, gns, gp, info.get("frame_stride", 1), node_factor(info, model_cells(info)),
+                 schedule)
+    sync = lambda r: block((r.positions, r.nodes, r.mode))  # noqa: E731
+    first, (_, nbrs) = measure(lambda: hyb.run(p, s, n_frames), sync=lambda r: sync(r[0]))
+    t, res = time_call(lambda: hyb.run(p, s, n_frames, nbrs)[0], repeats, sync=sync, first=first)
+    return res, dict(seconds=t["median_s"], mpm_fraction=res.mpm_fraction, **t)
+
+
+# ---------------------------------------------------------------- analysis
 def pareto(points):
     """Indices of points (time, error) not dominated by any other (lower is better)."""
     keep = []
@@ -66,7 +84,7 @@ def pareto(points):
     return keep
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", nargs="+",
                     default=["src/diffgns/models/gns_cg16_pf", "src/diffgns/models/gns_cg16",
@@ -76,8 +94,10 @@ def main():
     ap.add_argument("--mpm-cells", type=int, nargs="+", default=[4, 8, 12, 16])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="2 hybrid schedules, 1 case")
-    ap.add_argument("--out", default=str(RESULTS_DIR / "hybrid_pareto.json"))
-    args = ap.parse_args()
+    ap.add_argument("--out", default="hybrid_pareto.json")
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "hybrid_pareto")
     warm_up_jax()
     cases = CASES[1:2] if args.quick else CASES
     models = {Path(m).name: load_model(m) for m in args.models if Path(m).exists()}
@@ -98,8 +118,8 @@ def main():
             own = score_against(same_res[int(r["label"].split()[1])], same_res[own_cells])
             r.update(own_mpm_runout_error=own["runout_error"],
                      own_mpm_position_error_m=own["mean_position_error_m"])
-            print(r["label"], a, phi, f"{r['mean_position_error_m']:.2e}",
-                  f"{r['seconds']:.3f}s", flush=True)
+            run.print(r["label"], a, phi, f"{r['mean_position_error_m']:.2e}",
+                      f"{r['seconds']:.3f}s")
         for name, (gns, gp, info) in models.items():
             scene = column_scene(a, phi, model_cells(info))
             for sched in schedules(args.quick):
@@ -116,17 +136,17 @@ def main():
                 own = score_against(x, same_res[own_cells])  # against the MPM gns_cg16 emulates
                 rows[-1].update(own_mpm_runout_error=own["runout_error"],
                                 own_mpm_position_error_m=own["mean_position_error_m"])
-                print(rows[-1]["label"], a, phi,
-                      f"{rows[-1]['mean_position_error_m']:.2e}", f"{t['seconds']:.3f}s",
-                      flush=True)
+                run.print(rows[-1]["label"], a, phi,
+                          f"{rows[-1]['mean_position_error_m']:.2e}", f"{t['seconds']:.3f}s")
     table = aggregate(rows)
     target = check_target(table)
-    write_json(args.out, dict(command=command_line(), cases=cases, frames=args.frames,
-                              own_mpm_cells=own_cells, rows=rows, table=table, target=target))
-    plot(table, Path(args.out).with_suffix(".png"), args.reference_cells, own_cells)
-    print_table(table)
+    payload = dict(cases=cases, frames=args.frames, own_mpm_cells=own_cells, rows=rows,
+                   table=table, target=target)
+    run.finish(args.out, payload, lambda p: plot(table, p.with_suffix(".png"),
+                                                 args.reference_cells, own_cells))
+    print_table(run, table)
     for k, v in target.items():
-        print(f"target against {k}: {v}")
+        run.print(f"target against {k}: {v}")
 
 
 def aggregate(rows):
@@ -184,20 +204,20 @@ def check_target(table) -> dict:
     return out
 
 
-def print_table(table):
-    print(f"\n{'simulator':52s} {'time s':>8s} {'MPM %':>6s} {'runout err':>10s} "
-          f"{'pos err mm':>10s} {'final mm':>9s} {'vs own MPM mm':>13s} front own-front")
+def print_table(run, table):
+    run.print(f"{'simulator':52s} {'time s':>8s} {'MPM %':>6s} {'runout err':>10s} "
+              f"{'pos err mm':>10s} {'final mm':>9s} {'vs own MPM mm':>13s} front own-front")
     for r in table:
         own = r.get("own_mpm_position_error_m")
         own = f"{1e3 * own:13.2f}" if own is not None else f"{'':13s}"
-        print(f"{r['label']:52s} {r['seconds']:8.3f} {100 * r['mpm_fraction']:6.0f} "
-              f"{r['runout_error']:10.3f} {1e3 * r['mean_position_error_m']:10.2f} "
-              f"{1e3 * r['final_position_error_m']:9.2f} {own} "
-              f"{'*' if r.get('pareto') else '':5s} {'*' if r.get('pareto_own') else ''}")
+        run.print(f"{r['label']:52s} {r['seconds']:8.3f} {100 * r['mpm_fraction']:6.0f} "
+                  f"{r['runout_error']:10.3f} {1e3 * r['mean_position_error_m']:10.2f} "
+                  f"{1e3 * r['final_position_error_m']:9.2f} {own} "
+                  f"{'*' if r.get('pareto') else '':5s} {'*' if r.get('pareto_own') else ''}")
 
 
 def plot(table, path: Path, reference_cells: int, own_cells: int):
-    plt = use_agg()
+    plt = protocol.use_agg()
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     marks = {"MPM": ("s", "tab:blue"), "GNS": ("^", "tab:red"), "hybrid": ("o", "tab:green")}
     panels = (("mean_position_error_m", "pareto",
@@ -230,7 +250,7 @@ def plot(table, path: Path, reference_cells: int, own_cells: int):
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=130)
-    print(f"plot written to {path}")
+    plt.close(fig)
 
 
 if __name__ == "__main__":

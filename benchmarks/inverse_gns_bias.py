@@ -12,15 +12,16 @@ value a converged runout inversion through the GNS returns (the optimiser only f
 root). Also, for the default column, the same with other initial histories: the column at
 rest repeated 6 times, and a differentiable MPM start-up at the trial phi.
 
-Writes ``benchmarks/results/inverse_gns_bias.json``.
+No speed figure: the protocol (``benchmarks/protocol.py``) records the load, commit and
+machine without refusing a loaded machine. Writes ``benchmarks/results/inverse_gns_bias.json``.
 """
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
-from _common import machine_info, write_json
+import protocol
+from timing import measure, no_sync
 
 METHODS = ("max", "softmax", "percentile")
 
@@ -34,12 +35,13 @@ def root(phis, values, target) -> float | None:
     return float(phis[k] + d[k] / (d[k] - d[k + 1]) * (phis[k + 1] - phis[k]))
 
 
-def scan(col, observed, loaded, phis, history: str, target_phi: float) -> dict:
+def final_positions(col, observed, loaded, phis, history: str, target_phi: float) -> list:
+    """The GNS's last frame at every friction angle of ``phis``. The one place this benchmark
+    calls the simulator."""
     import jax
     import jax.numpy as jnp
 
     from diffgns.inverse.simulators import gns_simulator
-    from diffgns.metrics import runout
 
     obs = observed
     if history == "rest":
@@ -49,7 +51,15 @@ def scan(col, observed, loaded, phis, history: str, target_phi: float) -> dict:
     if history == "mpm":
         sim.allocate({"friction_angle": target_phi})
     f = jax.jit(lambda phi: sim({"friction_angle": phi})[-1])
-    finals = [f(jnp.float32(p)) for p in phis]
+    return [f(jnp.float32(p)) for p in phis]
+
+
+def scan(col, observed, loaded, phis, history: str, target_phi: float) -> dict:
+    import jax.numpy as jnp
+
+    from diffgns.metrics import runout
+
+    finals = final_positions(col, observed, loaded, phis, history, target_phi)
     out = {}
     for m in METHODS:
         tgt = float(runout(jnp.asarray(observed[-1]), method=m))
@@ -62,41 +72,46 @@ def scan(col, observed, loaded, phis, history: str, target_phi: float) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--aspect-ratios", type=float, nargs="+",
                     default=[1.0, 1.5, 1.75, 2.0, 2.5, 3.0])
     ap.add_argument("--phis", type=float, nargs="+", default=list(range(22, 39)))
     ap.add_argument("--target-phi", type=float, default=30.0)
     ap.add_argument("--default-aspect-ratio", type=float, default=1.75)
-    args = ap.parse_args()
+    ap.add_argument("--out", default="inverse_gns_bias.json")
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "inverse_gns_bias", timed=False)
     from diffgns.inverse.simulators import Column, ColumnCase, load_gns
 
-    machine = machine_info()
     loaded = load_gns()
-    t0 = time.time()
     rows = []
-    for a in args.aspect_ratios:
-        col = Column(ColumnCase(aspect_ratio=a))
-        observed = col.observation({"friction_angle": args.target_phi})
-        hists = ["observed", "rest", "mpm"] if a == args.default_aspect_ratio else ["observed"]
-        for h in hists:
-            res = scan(col, observed, loaded, args.phis, h, args.target_phi)
-            rows.append(dict(aspect_ratio=a, nodes=col.n_nodes, history=h, **res))
-            print(f"a={a:g} ({col.n_nodes} nodes), history {h}: " + "; ".join(
-                f"{m} {res[m]['gns_error_at_target_phi']:+.1%} -> phi "
-                + ("none" if res[m]["recovered_phi"] is None else
-                   f"{res[m]['recovered_phi']:.2f}") for m in METHODS), flush=True)
-    path = write_json("inverse_gns_bias.json", {
-        "benchmark": "inverse_gns_bias",
+
+    def body():
+        for a in args.aspect_ratios:
+            col = Column(ColumnCase(aspect_ratio=a))
+            observed = col.observation({"friction_angle": args.target_phi})
+            hists = ["observed", "rest", "mpm"] if a == args.default_aspect_ratio \
+                else ["observed"]
+            for h in hists:
+                res = scan(col, observed, loaded, args.phis, h, args.target_phi)
+                rows.append(dict(aspect_ratio=a, nodes=col.n_nodes, history=h, **res))
+                run.print(f"a={a:g} ({col.n_nodes} nodes), history {h}: " + "; ".join(
+                    f"{m} {res[m]['gns_error_at_target_phi']:+.1%} -> phi "
+                    + ("none" if res[m]["recovered_phi"] is None else
+                       f"{res[m]['recovered_phi']:.2f}") for m in METHODS))
+
+    total = measure(body, sync=no_sync)[0]
+    path = run.finish(args.out, {
         "description": "friction angle at which the GNS's final runout equals the MPM's "
                        f"(phi = {args.target_phi:g}) runout, by linear interpolation over "
                        "a grid of phi; gns_error_at_target_phi = relative runout error of the "
                        "GNS at the true phi; history: the GNS's 6 initial frames (observed MPM "
                        "frames, the column at rest repeated, or an MPM start-up at the trial "
-                       "phi)", "settings": vars(args), "total_wall_s": time.time() - t0,
-        "results": rows}, machine)
-    print(f"wrote {path}")
+                       "phi)", "settings": vars(args), "total_wall_s": total.wall_s,
+        "total_cpu_s": total.cpu_s, "results": rows})
+    run.print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ For every frame count and checkpoint in {none, blocks of each of ``--blocks`` fr
 process: the forward and gradient programs are compiled ahead of time (``lower`` +
 ``compile``, timed on their own) and XLA's ``memory_analysis()`` is stored (temp, argument,
 output; MB = 1e6 bytes); then one warm-up call and ``--repeats`` steady calls of each
-(``block_until_ready``; median reported); the process's peak RSS
-(``getrusage(RUSAGE_SELF).ru_maxrss``) after compiling and at the end.
+(``block_until_ready``; median reported, wall and CPU: ``benchmarks/timing.py``); the
+process's peak RSS (``getrusage(RUSAGE_SELF).ru_maxrss``) after compiling and at the end. The
+load check and thread setting are the parent's (``benchmarks/protocol.py``).
 
 Writes ``benchmarks/results/inverse_gns_memory.json`` and ``.png``.
 """
@@ -24,97 +25,76 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
-import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from _common import RESULTS_DIR, machine_info, timed, use_agg, warm_up_jax, write_json
+import protocol
+from timing import compile_ahead, measure, no_sync, peak_rss_mb, time_call, warm_up_jax
 
 TAG = "INVERSE_GNS_MEMORY_RESULT "
-MB = 1e6
 
 
 def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+    protocol.worker_run("inverse_gns_memory").print(msg, file=sys.stderr)
 
 
-def rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / MB
+def loss_fn(n_steps: int, block: int | None, aspect_ratio: float):
+    """(loss(phi) = soft-runout misfit of a GNS rollout of ``n_steps`` frames, nodes). The
+    one place this benchmark calls the simulator."""
+    from diffgns.inverse import objectives
+    from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator
 
+    col = Column(ColumnCase(aspect_ratio=aspect_ratio))
+    observed = col.observation({"friction_angle": 30.0})
+    sim = gns_simulator(col, observed=observed, checkpoint_block=block, n_steps=n_steps)
+    obj = objectives.runout_loss(observed[:sim.C + 1 + n_steps], method="softmax")
 
-def memory(exe) -> dict:
-    m = exe.memory_analysis()
-    out = {k: int(getattr(m, k)) for k in ("temp_size_in_bytes", "argument_size_in_bytes",
-                                            "output_size_in_bytes", "alias_size_in_bytes")}
-    out["temp_mb"] = out["temp_size_in_bytes"] / MB
-    out["total_mb"] = (out["temp_size_in_bytes"] + out["argument_size_in_bytes"]
-                       + out["output_size_in_bytes"] - out["alias_size_in_bytes"]) / MB
-    return out
+    def loss(phi):
+        pos, overflow = sim.rollout({"friction_angle": phi})
+        return obj(pos)
+
+    return loss, col.n_nodes
 
 
 def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from diffgns.inverse import objectives
-    from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator
-
     warm_up_jax()
-    col = Column(ColumnCase(aspect_ratio=aspect_ratio))
-    observed = col.observation({"friction_angle": 30.0})
-    sim = gns_simulator(col, observed=observed, checkpoint_block=block, n_steps=n_steps)
-    T = sim.C + 1 + n_steps
-    obj = objectives.runout_loss(observed[:T], method="softmax")
-
-    def loss(phi):
-        pos, overflow = sim.rollout({"friction_angle": phi})
-        return obj(pos)
-
+    loss, nodes = loss_fn(n_steps, block, aspect_ratio)
     phi = jnp.asarray(45.0, jnp.float32)
-    res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block), "nodes": col.n_nodes,
+    res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block), "nodes": nodes,
            "loadavg_start": list(os.getloadavg())}
     exes = {}
     for name, fn in (("forward", loss), ("gradient", jax.value_and_grad(loss))):
-        lw, _, lowered = timed(lambda fn=fn: jax.jit(fn).lower(phi), sync=lambda x: x)
-        cw, cc, exe = timed(lowered.compile, sync=lambda x: x)
-        exes[name] = exe
-        res[name] = {"lower_s": lw, "compile_s": cw, "compile_cpu_s": cc, "memory": memory(exe)}
+        exes[name], res[name] = compile_ahead(jax.jit(fn), phi)
+        lw, cw = res[name]["lower_s"], res[name]["compile_s"]
         log(f"[{n_steps} steps, block {block}] {name}: compile {lw + cw:.1f} s, XLA temp "
             f"{res[name]['memory']['temp_mb']:.1f} MB")
-    res["peak_rss_after_compile_mb"] = rss_mb()
+    res["peak_rss_after_compile_mb"] = peak_rss_mb()
     for name, exe in exes.items():
-        w, _, out = timed(lambda exe=exe: exe(phi))
-        samples = [timed(lambda exe=exe: exe(phi))[:2] for _ in range(repeats)]
-        walls = [s[0] for s in samples]
-        res[name].update(first_call_s=w, median_s=statistics.median(walls), samples_s=walls,
-                         cpu_samples_s=[s[1] for s in samples])
+        t, out = time_call(lambda exe=exe: exe(phi), repeats)
+        t.pop("compile_s")  # the executables are compiled: the first call is a warm-up
+        res[name].update(t)
         if name == "gradient":
             res["loss"], res["dloss_dphi"] = float(out[0]), float(out[1])
-        log(f"[{n_steps} steps, block {block}] {name}: first {w:.2f} s, median "
-            f"{res[name]['median_s']:.2f} s")
+        log(f"[{n_steps} steps, block {block}] {name}: first {t['first_call_s']:.2f} s, "
+            f"median {t['median_s']:.2f} s (CPU {t['cpu_median_s']:.2f} s)")
     res["grad_over_forward"] = res["gradient"]["median_s"] / res["forward"]["median_s"]
-    res["peak_rss_mb"] = rss_mb()
+    res["peak_rss_mb"] = peak_rss_mb()
     res["loadavg_end"] = list(os.getloadavg())
     return res
 
 
-def spawn(n_steps: int, block: int | None, args) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--case", str(n_steps),
-           str(block or 0), "--repeats", str(args.repeats), "--aspect-ratio",
-           str(args.aspect_ratio)]
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
-    for line in p.stdout.splitlines():
-        if line.startswith(TAG):
-            res = json.loads(line[len(TAG):])
-            break
-    else:
+def spawn(run: protocol.Run, n_steps: int, block: int | None, args) -> dict:
+    cmd = [str(Path(__file__).resolve()), "--case", str(n_steps), str(block or 0),
+           "--repeats", str(args.repeats), "--aspect-ratio", str(args.aspect_ratio)]
+    case, (res, code) = measure(lambda: protocol.run_worker(run, cmd, TAG), sync=no_sync)
+    if res is None:
         res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block),
-               "error": f"worker exited with code {p.returncode}"}
-    res["case_wall_s"] = time.perf_counter() - t0
+               "error": f"worker exited with code {code}"}
+    res["case_wall_s"], res["case_cpu_s"] = case.wall_s, case.cpu_s
     return res
 
 
@@ -138,7 +118,7 @@ def table(rows) -> str:
 
 
 def plot(rows, path: Path) -> None:
-    plt = use_agg()
+    plt = protocol.use_agg()
     fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 4))
     blocks = sorted({r["block"] or 0 for r in rows if "error" not in r})
     for i, b in enumerate(blocks):
@@ -166,7 +146,7 @@ def plot(rows, path: Path) -> None:
     plt.close(fig)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, nargs="+", default=[30, 100, 120])
     ap.add_argument("--blocks", type=int, nargs="+", default=[10, 2],
@@ -174,28 +154,29 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--aspect-ratio", type=float, default=1.75)
     ap.add_argument("--note", default=None)
+    ap.add_argument("--out", default="inverse_gns_memory.json")
     ap.add_argument("--case", nargs=2, type=int, help=argparse.SUPPRESS)
-    args = ap.parse_args()
-    if args.case:
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    if args.case:  # worker process (the parent checked the load)
         res = run_case(args.case[0], args.case[1] or None, args.repeats, args.aspect_ratio)
         print(TAG + json.dumps(res), flush=True)
         return
-    machine = machine_info()
+    run = protocol.start(args, "inverse_gns_memory")
     t0 = time.time()
-    rows = [spawn(n, b, args) for n in sorted(args.frames) for b in (None, *args.blocks)]
+    rows = [spawn(run, n, b, args) for n in sorted(args.frames) for b in (None, *args.blocks)]
     text = table(rows)
-    print(text)
-    png = RESULTS_DIR / "inverse_gns_memory.png"
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    plot(rows, png)
-    path = write_json("inverse_gns_memory.json", {
-        "benchmark": "inverse_gns_memory", "note": args.note,
+    run.print(text)
+    payload = {
+        "note": args.note,
         "description": "d/dphi of the soft-runout misfit through GNS rollouts of models/"
                        "gns_columns, with and without jax.checkpoint blocks; AOT-compiled "
-                       "programs, XLA memory_analysis, median steady calls, one process per "
-                       "case", "settings": vars(args), "total_wall_s": time.time() - t0,
-        "table": text, "results": rows, "plot": png.name}, machine)
-    print(f"wrote {path} and {png}")
+                       "programs, XLA memory_analysis, median steady calls (wall and CPU), "
+                       "one process per case",
+        "settings": {k: v for k, v in vars(args).items() if k != "case"},
+        "total_wall_s": time.time() - t0, "table": text, "results": rows}
+    path = run.finish(args.out, payload, lambda p: plot(rows, p.with_suffix(".png")))
+    run.print(f"wrote {path} (and the plot beside it)")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Cost of each physics effect: steady time per MPM substep of the same ~4k-particle body.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/mpm_effects.py [--repeats 7]
+    .venv/bin/python benchmarks/mpm_effects.py [--repeats 7]
 
 One 0.2 m x 0.2 m square (32 x 32 cells, 4 particles per cell = 4096 particles) in a
 1.0 m x 0.5 m box (dx = 6.25 mm, 167 x 87 grid nodes), under gravity, in five variants:
@@ -12,20 +12,21 @@ One 0.2 m x 0.2 m square (32 x 32 cells, 4 particles per cell = 4096 particles) 
     fluid                  Fluid (Tait, K 0.2 MPa, viscosity 1e-3) + slip walls
 
 All variants use the same substep dt (the smallest stable one of the five) and the jitted
-``MPM(scene).rollout_full`` for the same number of frames. Each variant is compiled
-first (compile = first call - median steady call), then the timed calls are interleaved
-round-robin across variants so they share the machine's load. Writes
-``benchmarks/results/mpm_effects.json`` and ``mpm_effects.png``.
+MPM rollout for the same number of frames. Each variant is compiled first (compile = first
+call - median steady call), then timed in interleaved rounds (one call of every variant per
+round, the order alternating), so they share the machine's load; a variant's cost relative
+to the baseline is also given as the median of its per-round ratios (``benchmarks/timing.py``,
+under ``benchmarks/protocol.py``). Writes ``benchmarks/results/mpm_effects.json`` and
+``mpm_effects.png``.
 """
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import jax
 import jax.numpy as jnp
-from _common import RESULTS_DIR, machine_info, summary, timed, use_agg, warm_up_jax, write_json
+import protocol
+from timing import interleave, measure, warm_up_jax
 
 from diffgns.mpm import MPM
 from diffgns.scene import Body, BoxObstacle, Scene, Wall, Walls
@@ -59,8 +60,16 @@ def variants(dt: float | None = None) -> dict[str, Scene]:
     }
 
 
+def rollout_call(scene: Scene, n_frames: int):
+    """Zero-argument call returning the (T, N, 2) positions of a jitted MPM rollout of
+    ``scene``. The one place this benchmark calls the simulator."""
+    sim = MPM(scene)
+    params, state = sim.params(), sim.init_state()
+    return lambda: sim.rollout_full(params, state, n_frames=n_frames)[0]
+
+
 def plot(rows: dict, path):
-    plt = use_agg()
+    plt = protocol.use_agg()
     names = list(rows)
     us = [rows[n]["us_per_substep"] for n in names]
     rel = [rows[n]["relative_to_baseline"] for n in names]
@@ -84,90 +93,64 @@ def plot(rows: dict, path):
     plt.close(fig)
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=7, help="timed calls per variant (>= 3)")
-    ap.add_argument("--frames", type=int, default=8, help="frames per timed call")
-    args = ap.parse_args()
-    repeats = max(3, args.repeats)
-    machine = machine_info()
-    dt = min(s.stable_dt() for s in variants().values())
-    scenes = variants(dt)
-    warm_up_jax()
-    t_start = time.perf_counter()
-
-    calls, first = {}, {}
-    for name, scene in scenes.items():
-        sim = MPM(scene)
-        params, state = sim.params(), sim.init_state()
-        calls[name] = (lambda s=sim, p=params, x=state:
-                       s.rollout_full(p, x, n_frames=args.frames))
-        first[name] = timed(calls[name])[0]
-        print(f"compiled {name:<20} first call {first[name]:.2f} s", flush=True)
-
-    walls = {n: [] for n in scenes}
-    cpus = {n: [] for n in scenes}
-    finite = {}
-    names = list(scenes)
-    for r in range(repeats):
-        for name in names if r % 2 == 0 else names[::-1]:
-            w, c, out = timed(calls[name])
-            walls[name].append(w)
-            cpus[name].append(c)
-            finite[name] = bool(jnp.all(jnp.isfinite(out[0])))
-    total = time.perf_counter() - t_start
-
+def measure_variants(scenes: dict[str, Scene], frames: int, repeats: int) -> dict:
+    """Interleaved rounds over the variants (first calls = compile, timed apart)."""
+    res = interleave({k: rollout_call(sc, frames) for k, sc in scenes.items()}, repeats)
     rows = {}
     for name, scene in scenes.items():
-        sub = scene.substeps * args.frames
-        s = summary(walls[name], cpus[name])
-        s["first_call_s"] = first[name]
-        s["compile_s"] = max(0.0, first[name] - s["median_s"])
+        sub = scene.substeps * frames
+        s = res.summary(name)
         rows[name] = {
-            "effects": sorted(scene.effects),
-            "n_particles": scene.n_particles,
-            "grid_shape": list(scene.grid_shape),
-            "substep_dt_s": scene.substep_dt,
+            "effects": sorted(scene.effects), "n_particles": scene.n_particles,
+            "grid_shape": list(scene.grid_shape), "substep_dt_s": scene.substep_dt,
             "substeps_per_call": sub,
-            "finite": finite[name],
-            **s,
+            "finite": bool(jnp.all(jnp.isfinite(res.outputs[name]))), **s,
             "us_per_substep": 1e6 * s["median_s"] / sub,
             "particle_substeps_per_s": scene.n_particles * sub / s["median_s"],
         }
     base = rows[BASELINE]["us_per_substep"]
     for name, row in rows.items():
         row["relative_to_baseline"] = row["us_per_substep"] / base
-        # per-repeat ratio against the baseline call timed in the same round
-        row["relative_paired_median"] = statistics.median(
-            a / b for a, b in zip(walls[name], walls[BASELINE]))
+        # median over rounds of the ratio against the baseline call of the same round
+        row["relative_paired_median"] = res.ratio(name, BASELINE)
+    return {"rows": rows, "rounds": res.to_json()["rounds"]}
 
-    print(f"{'variant':<20} {'particles':>9} {'us/substep':>10} {'rel':>6} {'rel(paired)':>11} "
-          f"{'compile s':>9} {'M p-substeps/s':>14}")
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=7, help="timed rounds (>= 3)")
+    ap.add_argument("--frames", type=int, default=8, help="frames per timed call")
+    ap.add_argument("--out", default="mpm_effects.json")
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "mpm_effects")
+    repeats = max(3, args.repeats)
+    dt = min(s.stable_dt() for s in variants().values())
+    scenes = variants(dt)
+    warm_up_jax()
+    total, res = measure(lambda: measure_variants(scenes, args.frames, repeats),
+                         sync=lambda _: None)
+    rows = res["rows"]
+    run.print(f"{'variant':<20} {'particles':>9} {'us/substep':>10} {'rel':>6} "
+              f"{'rel(paired)':>11} {'compile s':>9} {'cpu/wall':>8} {'M p-substeps/s':>14}")
     for name, r in rows.items():
-        print(f"{name:<20} {r['n_particles']:>9} {r['us_per_substep']:>10.1f} "
-              f"{r['relative_to_baseline']:>6.2f} {r['relative_paired_median']:>11.2f} "
-              f"{r['compile_s']:>9.2f} {r['particle_substeps_per_s'] / 1e6:>14.3f}")
-    print(f"median of {repeats} interleaved calls x {rows[BASELINE]['substeps_per_call']} "
-          f"substeps each; total {total:.1f} s")
-
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    png = RESULTS_DIR / "mpm_effects.png"
-    plot(rows, png)
-    path = write_json("mpm_effects.json", {
-        "benchmark": "mpm_effects",
-        "description": "same 4096-particle square, same dt, jitted MPM.rollout_full; "
-                       "relative_to_baseline = median us/substep / baseline median",
-        "baseline": BASELINE,
-        "dtype": str(jnp.asarray(0.0).dtype),
-        "jax": jax.__version__,
-        "dt_s": dt,
-        "frames_per_call": args.frames,
-        "repeats": repeats,
-        "total_wall_s": total,
-        "results": rows,
-        "plot": png.name,
-    }, machine)
-    print(f"wrote {path} and {png}")
+        run.print(f"{name:<20} {r['n_particles']:>9} {r['us_per_substep']:>10.1f} "
+                  f"{r['relative_to_baseline']:>6.2f} {r['relative_paired_median']:>11.2f} "
+                  f"{r['compile_s']:>9.2f} {r['cpu_over_wall']:>8.2f} "
+                  f"{r['particle_substeps_per_s'] / 1e6:>14.3f}")
+    run.print(f"median of {repeats} interleaved rounds x "
+              f"{rows[BASELINE]['substeps_per_call']} substeps each; total {total.wall_s:.1f} s")
+    payload = {
+        "description": "same 4096-particle square, same dt, jitted MPM rollout; "
+                       "relative_to_baseline = median us/substep / baseline median; "
+                       "relative_paired_median = median over rounds of the per-round ratio",
+        "baseline": BASELINE, "dtype": str(jnp.asarray(0.0).dtype), "jax": jax.__version__,
+        "dt_s": dt, "frames_per_call": args.frames, "repeats": repeats,
+        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s, "results": rows,
+        "rounds": res["rounds"],
+    }
+    path = run.finish(args.out, payload, lambda p: plot(rows, p.with_suffix(".png")))
+    run.print(f"wrote {path} (and the plot beside it)")
 
 
 if __name__ == "__main__":

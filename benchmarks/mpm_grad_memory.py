@@ -1,7 +1,7 @@
 """Memory and time of reverse-mode gradients through whole MPM rollouts, with and without
 checkpointing.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/mpm_grad_memory.py [--frames 100 400 1600]
+    .venv/bin/python benchmarks/mpm_grad_memory.py [--frames 100 400 1600]
         [--block 25] [--repeats 3] [--budget-s 600] [--mem-limit-gb 4] [--note TEXT]
 
 Scene: ``column_collapse(width=0.1, aspect_ratio=2.0, friction_angle=30.0, cells_across=8)``
@@ -27,6 +27,8 @@ For every n_frames and checkpoint in {False, True (block frames per checkpointed
   fresh Python process, so the figure is that case's peak (after compiling both programs,
   and at the end of the case) rather than a running maximum over earlier cases.
 
+Measured under ``benchmarks/protocol.py`` (the load check is made once, by the parent; the
+workers inherit its thread setting), timed with ``benchmarks/timing.py`` (wall and CPU time).
 Writes ``benchmarks/results/mpm_grad_memory.json`` and ``mpm_grad_memory.png``.
 """
 from __future__ import annotations
@@ -35,45 +37,41 @@ import argparse
 import json
 import math
 import os
-import resource
-import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from _common import RESULTS_DIR, machine_info, timed, use_agg, warm_up_jax, write_json
+import protocol
+from timing import Sample, compile_ahead, measure, no_sync, peak_rss_mb, stats, warm_up_jax
 
 SCENE_KW = dict(width=0.1, aspect_ratio=2.0, friction_angle=30.0, cells_across=8)
 RESULT_TAG = "MPM_GRAD_MEMORY_RESULT "
-MB, GB = 1e6, 1e9
+GB = 1e9
 
 
 def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far, MB (ru_maxrss is in KiB on Linux)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / MB
-
-
-def memory_stats(compiled) -> dict[str, Any]:
-    """XLA's memory analysis of a compiled executable, bytes and MB."""
-    m = compiled.memory_analysis()
-    fields = ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes",
-              "alias_size_in_bytes", "generated_code_size_in_bytes", "peak_memory_in_bytes")
-    out: dict[str, Any] = {f: int(getattr(m, f)) for f in fields if hasattr(m, f)}
-    total = (out["temp_size_in_bytes"] + out["argument_size_in_bytes"]
-             + out["output_size_in_bytes"] - out["alias_size_in_bytes"])
-    out["total_bytes"] = total
-    out["temp_mb"] = out["temp_size_in_bytes"] / MB
-    out["total_mb"] = total / MB
-    return out
+    protocol.worker_run("mpm_grad_memory").print(msg, file=sys.stderr)
 
 
 # ------------------------------------------------------------------------ one case (worker)
+def loss_fn(n_frames: int, ckpt: bool, block: int | None):
+    """(scene, loss(params, state) = soft runout of the last frame, params, state). The one
+    place this benchmark calls the simulator."""
+    from diffgns.metrics import runout
+    from diffgns.mpm import MPM
+    from diffgns.scene.builders import column_collapse
+
+    scene = column_collapse(**SCENE_KW)
+    sim = MPM(scene, dtype="float32")
+
+    def loss(p, s):
+        pos = sim.rollout_full(p, s, n_frames=n_frames, checkpoint=ckpt, block=block)[0]
+        return runout(pos[-1], method="softmax")
+
+    return scene, loss, sim.params(), sim.init_state()
+
+
 def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: int,
              mem_limit_gb: float, time_it: bool) -> dict[str, Any]:
     """Compile, analyse and (budget permitting) time forward and gradient of one case.
@@ -81,20 +79,10 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
     import jax
     import jax.numpy as jnp
 
-    from diffgns.metrics import runout
-    from diffgns.mpm import MPM
-    from diffgns.scene.builders import column_collapse
-
     warm_up_jax()
-    scene = column_collapse(**SCENE_KW)
-    sim = MPM(scene, dtype="float32")
-    params, state = sim.params(), sim.init_state()
     blk = block if ckpt else None
+    scene, loss, params, state = loss_fn(n_frames, ckpt, blk)
     tag = f"[{n_frames} frames, checkpoint={ckpt}]"
-
-    def loss(p, s):
-        pos = sim.rollout_full(p, s, n_frames=n_frames, checkpoint=ckpt, block=blk)[0]
-        return runout(pos[-1], method="softmax")
 
     res: dict[str, Any] = {
         "n_frames": n_frames, "checkpoint": ckpt, "block": blk,
@@ -105,11 +93,8 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
     programs = {"forward": jax.jit(loss), "gradient": jax.jit(jax.grad(loss))}
     compiled = {}
     for name, fn in programs.items():
-        lw, lc, lowered = timed(lambda fn=fn: fn.lower(params, state), sync=lambda x: x)
-        cw, cc, exe = timed(lowered.compile, sync=lambda x: x)
-        compiled[name] = exe
-        res[name] = {"lower_s": lw, "compile_s": cw, "compile_cpu_s": cc,
-                     "memory": memory_stats(exe)}
+        compiled[name], res[name] = compile_ahead(fn, params, state)
+        lw, cw = res[name]["lower_s"], res[name]["compile_s"]
         log(f"{tag} {name}: lower {lw:.1f} s, compile {cw:.1f} s, "
             f"XLA temp {res[name]['memory']['temp_mb']:.1f} MB, "
             f"total {res[name]['memory']['total_mb']:.1f} MB")
@@ -129,12 +114,12 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
 
     call = {name: (lambda exe=exe: exe(params, state)) for name, exe in compiled.items()}
     first: dict[str, float] = {}
-    steady: dict[str, list[tuple[float, float]]] = {"forward": [], "gradient": []}
+    steady: dict[str, list] = {"forward": [], "gradient": []}
     outs: dict[str, Any] = {}
 
     def estimate(name: str) -> float:
         if name in first:
-            return min([first[name]] + [w for w, _ in steady[name]])
+            return min([first[name]] + [x.wall_s for x in steady[name]])
         if name == "gradient" and "forward" in first:
             return 3.0 * first["forward"]  # a guess before the first gradient call
         return 0.0
@@ -150,26 +135,23 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
                                  f"(estimated {estimate(name):.0f} s)")
             run[name] = False
             continue
-        w, c, outs[name] = timed(call[name])
-        first[name] = w
-        res[name]["first_call_s"], res[name]["first_call_cpu_s"] = w, c
-        log(f"{tag} {name}: first call {w:.2f} s (cpu {c:.2f} s)")
+        one, outs[name] = measure(call[name])
+        first[name] = one.wall_s
+        res[name]["first_call_s"], res[name]["first_call_cpu_s"] = one.wall_s, one.cpu_s
+        log(f"{tag} {name}: first call {one.wall_s:.2f} s (cpu {one.cpu_s:.2f} s)")
     for _ in range(repeats):  # steady calls, forward and gradient interleaved
         for name in ("forward", "gradient"):
             if run[name] and len(steady[name]) < repeats and fits(name):
-                w, c, _ = timed(call[name])
-                steady[name].append((w, c))
-                log(f"{tag} {name}: steady call {w:.2f} s (cpu {c:.2f} s)")
+                one = measure(call[name])[0]
+                steady[name].append(one)
+                log(f"{tag} {name}: steady call {one.wall_s:.2f} s (cpu {one.cpu_s:.2f} s)")
 
     for name in ("forward", "gradient"):
         r = res[name]
         if name not in first:
             continue
-        walls = [w for w, _ in steady[name]] or [first[name]]
-        cpus = [c for _, c in steady[name]] or [r["first_call_cpu_s"]]
-        r.update({"median_s": statistics.median(walls), "min_s": min(walls),
-                  "max_s": max(walls), "n_steady": len(steady[name]), "samples_s": walls,
-                  "cpu_samples_s": cpus, "cpu_median_s": statistics.median(cpus)})
+        r.update(stats(steady[name] or [Sample(first[name], r["first_call_cpu_s"])]))
+        r["n_steady"] = len(steady[name])
         if not steady[name]:
             r["note"] = "timed once only (time budget): median_s is the first call"
         elif len(steady[name]) < repeats:
@@ -190,23 +172,20 @@ def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: in
 
 
 # ----------------------------------------------------------------------------- driver
-def spawn(n_frames: int, ckpt: bool, args, deadline: float, time_it: bool) -> dict[str, Any]:
+def spawn(run: protocol.Run, n_frames: int, ckpt: bool, args, deadline: float,
+          time_it: bool) -> dict[str, Any]:
     """Run one case in a fresh Python process (clean peak RSS, isolated from OOM)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--case", str(n_frames),
+    cmd = [str(Path(__file__).resolve()), "--case", str(n_frames),
            str(int(ckpt)), "--deadline", repr(deadline), "--block", str(args.block),
            "--repeats", str(args.repeats), "--mem-limit-gb", str(args.mem_limit_gb)]
     if not time_it:
         cmd.append("--no-time")
-    t0 = time.perf_counter()
-    p = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
-    for line in p.stdout.splitlines():
-        if line.startswith(RESULT_TAG):
-            res = json.loads(line[len(RESULT_TAG):])
-            break
-    else:
+    case, (res, code) = measure(lambda: protocol.run_worker(run, cmd, RESULT_TAG),
+                                sync=no_sync)
+    if res is None:
         res = {"n_frames": n_frames, "checkpoint": ckpt, "block": args.block if ckpt else None,
-               "error": f"worker exited with code {p.returncode} and no result"}
-    res["case_wall_s"] = time.perf_counter() - t0
+               "error": f"worker exited with code {code} and no result"}
+    res["case_wall_s"], res["case_cpu_s"] = case.wall_s, case.cpu_s
     return res
 
 
@@ -244,7 +223,7 @@ def table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path, block: int) -> None:
-    plt = use_agg()
+    plt = protocol.use_agg()
     fig, (a0, a1) = plt.subplots(1, 2, figsize=(11, 4.2))
     ok = [r for r in rows if "error" not in r]
     for ckpt, color in ((False, "tab:red"), (True, "tab:blue")):
@@ -286,7 +265,7 @@ def plot(rows: list[dict], path: Path, block: int) -> None:
     plt.close(fig)
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, nargs="+", default=[100, 400, 1600])
     ap.add_argument("--block", type=int, default=25, help="frames per checkpointed block")
@@ -299,18 +278,20 @@ def main() -> None:
     ap.add_argument("--plain-time-max-frames", type=int, default=400,
                     help="do not time rollouts without checkpointing longer than this")
     ap.add_argument("--note", default=None, help="free-text note stored in the JSON")
+    ap.add_argument("--out", default="mpm_grad_memory.json")
     ap.add_argument("--case", nargs=2, type=int, metavar=("FRAMES", "CKPT"), help=argparse.SUPPRESS)
     ap.add_argument("--deadline", type=float, default=math.inf, help=argparse.SUPPRESS)
     ap.add_argument("--no-time", action="store_true", help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
 
-    if args.case:  # worker process
+    if args.case:  # worker process (the parent checked the load)
         res = run_case(args.case[0], bool(args.case[1]), args.block, args.deadline,
                        args.repeats, args.mem_limit_gb, not args.no_time)
         print(RESULT_TAG + json.dumps(res), flush=True)
         return
 
-    machine = machine_info()
+    run = protocol.start(args, "mpm_grad_memory")
     t_start = time.time()
     deadline = t_start + args.budget_s
     frames = sorted(args.frames)
@@ -321,38 +302,34 @@ def main() -> None:
         last = i == len(cases) - 1
         time_it = ckpt or n <= args.plain_time_max_frames
         case_deadline = deadline if last else deadline - args.reserve_s
-        log(f"--- case {n} frames, checkpoint={ckpt} ({time.time() - t_start:.0f} s elapsed, "
-            f"loadavg {os.getloadavg()[0]:.2f})")
-        rows.append(spawn(n, ckpt, args, case_deadline, time_it))
+        run.print(f"--- case {n} frames, checkpoint={ckpt} ({time.time() - t_start:.0f} s "
+                  f"elapsed, load {os.getloadavg()[0]:.2f})", file=sys.stderr)
+        rows.append(spawn(run, n, ckpt, args, case_deadline, time_it))
     total = time.time() - t_start
 
     text = table(rows)
-    print(text)
-    print(f"total benchmark time {total:.1f} s")
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    png = RESULTS_DIR / "mpm_grad_memory.png"
-    plot(rows, png, args.block)
-    path = write_json("mpm_grad_memory.json", {
-        "benchmark": "mpm_grad_memory",
+    run.print(text)
+    run.print(f"total benchmark time {total:.1f} s")
+    payload = {
         "description": (
             "reverse-mode gradient of runout(pos[-1], method='softmax') w.r.t. MPMParams "
-            "through MPM.rollout_full of column_collapse(" + ", ".join(
+            "through the MPM rollout of column_collapse(" + ", ".join(
                 f"{k}={v}" for k, v in SCENE_KW.items()) + "), float32; memory from XLA "
             "memory_analysis() of the AOT-compiled jax.jit programs (total = argument + "
             "output + temp - alias; MB = 1e6 bytes); times are medians of steady calls of the "
-            "compiled executables (block_until_ready); compile_s = lower + compile wall time; "
-            "each case runs in a fresh process, peak_rss_mb is that process's ru_maxrss"),
+            "compiled executables (block_until_ready), wall and CPU; compile_s = lower + "
+            "compile wall time; each case runs in a fresh process, peak_rss_mb is that "
+            "process's ru_maxrss"),
         "note": args.note,
         "settings": {"frames": frames, "block": args.block, "repeats": args.repeats,
                      "budget_s": args.budget_s, "reserve_s": args.reserve_s,
                      "mem_limit_gb": args.mem_limit_gb,
                      "plain_time_max_frames": args.plain_time_max_frames},
-        "total_wall_s": total,
-        "table": text,
-        "results": rows,
-        "plot": png.name,
-    }, machine)
-    print(f"wrote {path} and {png}")
+        "total_wall_s": total, "table": text, "results": rows,
+    }
+    path = run.finish(args.out, payload,
+                      lambda p: plot(rows, p.with_suffix(".png"), args.block))
+    run.print(f"wrote {path} (and the plot beside it)")
 
 
 if __name__ == "__main__":

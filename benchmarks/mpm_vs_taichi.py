@@ -1,6 +1,6 @@
 """diffgns' MPM kernels vs Taichi (CPU) on the physics of Taichi's ``mpm88`` demo.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/mpm_vs_taichi.py [--repeats 7]
+    .venv/bin/python benchmarks/mpm_vs_taichi.py [--repeats 9] [--threads both]
 
 The problem (both implementations written here, float32): 8192 particles of a weakly
 compressible "J-fluid" (Kirchhoff stress E (J - 1) I with E = 400, p_rho = 1,
@@ -10,16 +10,20 @@ i > 128 - 3, same along y) that zero the velocity component pointing into the wa
 Initial positions: numpy ``default_rng(0)`` uniform in [0.2, 0.6]^2, shared by both.
 
 (a) Taichi: four parallel loops in one ``@ti.kernel`` (grid clear, P2G with atomic adds,
-    grid update, G2P), one kernel launch per substep, ``ti.init(arch=ti.cpu)`` with the
-    default thread count.
+    grid update, G2P), one kernel launch per substep, ``ti.init(arch=ti.cpu,
+    cpu_max_num_threads=<threads>)``.
 (b) diffgns: ``shape.stencil`` -> ``transfer.p2g`` -> ``transfer.grid_velocity`` ->
     gravity -> ``boundaries.wall_slip`` on the four slabs -> ``transfer.g2p``, in the
     component-major layout ((2, N) vectors, (2, 2, N) matrices), 50 substeps in a
     ``lax.scan`` under ``jax.jit``.
 
-Speed: after warm-up, ``--repeats`` timed segments of ``--substeps-per-repeat``
-substeps for each implementation, interleaved (alternating which goes first) so both see
-the same machine load; median particle-substeps/s and the ratio diffgns / Taichi.
+Speed (``benchmarks/protocol.py``, ``benchmarks/timing.py``): after a first (compiling)
+segment each, ``--repeats`` rounds; a round times one segment of ``--substeps-per-repeat``
+substeps of each implementation, the order alternating round by round, so both see the same
+machine load. The throughput ratio diffgns / Taichi is the median of the per-round ratios.
+With ``--threads both`` (the default) it is measured with 2 threads (XLA's default, Taichi
+``cpu_max_num_threads=2``), then again in a child process pinned to one core with one thread
+on both sides; the report gives both ratios, wall and CPU time side by side.
 Physics check: both are run 500 and 2000 substeps from the same start; mean particle
 positions must agree within ``--tol`` (relative). Writes
 ``benchmarks/results/mpm_vs_taichi.json``.
@@ -27,12 +31,11 @@ positions must agree within ``--tol`` (relative). Writes
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 
 import numpy as np
-from _common import fmt_rate, machine_info, timed, write_json
+import protocol
+from timing import fmt_rate, interleave, measure, no_sync
 
 N_PARTICLES = 8192
 N_GRID = 128
@@ -253,147 +256,114 @@ def physics_check(sims: dict, x0: np.ndarray, tol: float) -> dict:
     return out
 
 
-def interleaved_timing(sims: dict, x0: np.ndarray, seg: int, repeats: int) -> dict:
-    """Reset every sim to x0, run one warm-up segment each, then ``repeats`` timed
-    segments of ``seg`` substeps, alternating which implementation goes first."""
-    for sim in sims.values():
-        sim.reset(x0)
-        sim.run(seg)
-    walls = {k: [] for k in sims}
-    cpus = {k: [] for k in sims}
-    order = list(sims)
-    for r in range(repeats):
-        for name in order if r % 2 == 0 else order[::-1]:
-            w, c, _ = timed(lambda s=sims[name]: s.run(seg), sync=lambda _: None)
-            walls[name].append(w)
-            cpus[name].append(c)
-    work = N_PARTICLES * seg
+def first_calls(sims: dict, x0: np.ndarray) -> dict:
+    """Wall and CPU seconds of each implementation's first segment (Taichi JIT / XLA
+    compile + one scan of SCAN_LEN substeps), timed apart."""
     out = {}
-    for name in sims:
-        med = statistics.median(walls[name])
-        out[name] = {
-            "median_s": med, "min_s": min(walls[name]), "max_s": max(walls[name]),
-            "samples_s": walls[name], "cpu_median_s": statistics.median(cpus[name]),
-            "cpu_samples_s": cpus[name],
-            "particle_substeps_per_s": work / med,
-            "particle_substeps_per_s_best": work / min(walls[name]),
-            "us_per_substep": 1e6 * med / seg,
-        }
+    for name, sim in sims.items():
+        sim.reset(x0)
+        s = measure(lambda sim=sim: sim.run(SCAN_LEN), sync=no_sync)[0]
+        out[name] = {"first_call_s": s.wall_s, "first_call_cpu_s": s.cpu_s}
     return out
 
 
-def paired_ratio(timing: dict, ref: str) -> float:
-    """Median over repeats of t_ref / t_diffgns for segments timed back to back."""
-    pairs = zip(timing[ref]["samples_s"], timing["diffgns"]["samples_s"])
-    return statistics.median(a / b for a, b in pairs)
+def timing_rounds(sims: dict, x0: np.ndarray, seg: int, repeats: int) -> dict:
+    """Reset both to x0, then interleaved rounds of one ``seg``-substep segment each (the
+    first segment of each, timed apart, compiles/warms up). Throughput ratio diffgns /
+    Taichi = median over rounds of t_taichi / t_diffgns."""
+    for sim in sims.values():
+        sim.reset(x0)
+    res = interleave({k: (lambda s=s: s.run(seg)) for k, s in sims.items()}, repeats,
+                     sync=no_sync)
+    work = N_PARTICLES * seg
+    out = {"rounds": res.to_json()["rounds"], "timing": {}}
+    for name in sims:
+        t = res.summary(name)
+        t.update(particle_substeps_per_s=work / t["median_s"],
+                 particle_substeps_per_s_best=work / t["min_s"],
+                 us_per_substep=1e6 * t["median_s"] / seg)
+        out["timing"][name] = t
+    out["ratio_diffgns_over_taichi"] = res.ratio("taichi", "diffgns")
+    out["ratio_diffgns_over_taichi_cpu"] = res.ratio("taichi", "diffgns", cpu=True)
+    out["ratio_of_medians"] = (out["timing"]["diffgns"]["particle_substeps_per_s"]
+                               / out["timing"]["taichi"]["particle_substeps_per_s"])
+    return out
 
 
-def report(timing: dict, repeats: int, seg: int):
-    for name, t in timing.items():
-        print(f"{name:>14}: {fmt_rate(t['particle_substeps_per_s'])} particle-substeps/s "
-              f"(median of {repeats} x {seg} substeps; {t['us_per_substep']:.0f} us/substep; "
-              f"CPU/wall {t['cpu_median_s'] / t['median_s']:.2f})", flush=True)
+def report(run: protocol.Run, res: dict, repeats: int, seg: int) -> None:
+    for name, t in res["timing"].items():
+        run.print(f"{name:>8}: {fmt_rate(t['particle_substeps_per_s'])} "
+                  f"particle-substeps/s (median of {repeats} x {seg} substeps; "
+                  f"{t['us_per_substep']:.0f} us/substep; CPU/wall {t['cpu_over_wall']:.2f})")
+    run.print("throughput ratio diffgns / taichi: "
+              f"{res['ratio_diffgns_over_taichi']:.3f} (median of per-round ratios; "
+              f"CPU-time ratio {res['ratio_diffgns_over_taichi_cpu']:.3f})")
 
 
-def skip(reason: str, machine: dict):
-    print(f"SKIPPED: {reason}")
-    path = write_json("mpm_vs_taichi.json", {"benchmark": "mpm_vs_taichi", "skipped": True,
-                                              "reason": reason}, machine)
-    print(f"wrote {path}")
+def skip(run: protocol.Run, reason: str, out: str):
+    run.print(f"SKIPPED: {reason}")
+    path = run.write(out, {"skipped": True, "reason": reason})
+    run.print(f"wrote {path}")
     sys.exit(0)
 
 
-def main():
+def taichi_config(ti) -> dict:
+    """Read now: the config object is freed by ti.reset()."""
+    from taichi.lang import impl
+
+    cfg = impl.current_cfg()
+    return {"arch": str(cfg.arch), "cpu_max_num_threads": cfg.cpu_max_num_threads,
+            "default_fp": str(cfg.default_fp), "offline_cache": bool(cfg.offline_cache),
+            "launch": "one @ti.kernel (4 parallel loops) per substep"}
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=9, help="timed segments each (>= 5)")
+    ap.add_argument("--repeats", type=int, default=9, help="timed rounds (>= 5)")
     ap.add_argument("--substeps-per-repeat", type=int, default=100,
                     help=f"substeps per timed segment (a multiple of {SCAN_LEN})")
-    ap.add_argument("--no-single-thread", action="store_true",
-                    help="skip the supplementary 1-thread Taichi measurement")
     ap.add_argument("--tol", type=float, default=0.03,
                     help="relative tolerance on mean particle x and y")
-    args = ap.parse_args()
-    machine = machine_info()
-    try:
-        import taichi as ti
-    except Exception as e:  # ImportError or a broken install
-        skip(f"taichi is not importable ({e!r}); install it with `pip install taichi` "
-             "(the `bench` extra)", machine)
-        return
-    import jax
-
+    ap.add_argument("--out", default="mpm_vs_taichi.json")
+    protocol.add_arguments(ap, threads="both")
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "mpm_vs_taichi")
     seg = args.substeps_per_repeat
     if seg % SCAN_LEN or seg < SCAN_LEN:
         ap.error(f"--substeps-per-repeat must be a positive multiple of {SCAN_LEN}")
+    try:
+        import taichi as ti
+    except Exception as e:  # ImportError or a broken install
+        skip(run, f"taichi is not importable ({e!r}); install it with `pip install taichi` "
+             "(the `bench` extra)", args.out)
+        return
+    import jax
+
     repeats = max(5, args.repeats)
-    ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0)
-    from taichi.lang import impl
-
-    def taichi_config():  # read now: the config object is freed by ti.reset()
-        cfg = impl.current_cfg()
-        return {"arch": str(cfg.arch), "cpu_max_num_threads": cfg.cpu_max_num_threads,
-                "default_fp": str(cfg.default_fp), "offline_cache": bool(cfg.offline_cache),
-                "launch": "one @ti.kernel (4 parallel loops) per substep"}
-
-    ti_config = taichi_config()
+    ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=run.threads)
+    ti_config = taichi_config(ti)
     x0 = initial_positions(0)
-    t_start = time.perf_counter()
-
     sims = {"taichi": TaichiMPM88(ti), "diffgns": DiffgnsMPM88()}
-    first_call = {}
-    for name, sim in sims.items():  # compile (taichi JIT / XLA) + first segment
-        sim.reset(x0)
-        first_call[name] = timed(lambda s=sim: s.run(SCAN_LEN), sync=lambda _: None)[0]
-    print(f"first {SCAN_LEN}-substep call (includes compilation): "
-          + ", ".join(f"{k} {v:.2f} s" for k, v in first_call.items()), flush=True)
 
-    check = physics_check(sims, x0, args.tol)
-    for cp, row in check.items():
-        r = row["rel_diff"]
-        print(f"after {cp:>4} substeps: mean y diffgns {row['diffgns']['mean_y']:.5f} "
-              f"taichi {row['taichi']['mean_y']:.5f} (rel diff {r['mean_y']:.2e}); "
-              f"mean x rel diff {r['mean_x']:.2e}; std y rel diff {r['std_y']:.2e} -> "
-              f"{'agree' if row['agree'] else 'DISAGREE'}", flush=True)
+    def body():
+        first = first_calls(sims, x0)
+        run.print(f"first {SCAN_LEN}-substep call (includes compilation): " + ", ".join(
+            f"{k} {v['first_call_s']:.2f} s" for k, v in first.items()))
+        check = physics_check(sims, x0, args.tol)
+        for cp, row in check.items():
+            r = row["rel_diff"]
+            run.print(f"after {cp:>4} substeps: mean y diffgns {row['diffgns']['mean_y']:.5f} "
+                      f"taichi {row['taichi']['mean_y']:.5f} (rel diff {r['mean_y']:.2e}); "
+                      f"mean x rel diff {r['mean_x']:.2e}; std y rel diff {r['std_y']:.2e} -> "
+                      f"{'agree' if row['agree'] else 'DISAGREE'}")
+        return first, check, timing_rounds(sims, x0, seg, repeats)
 
-    # timing, from the common initial state, interleaved
-    timing = interleaved_timing(sims, x0, seg, repeats)
-    ratio = timing["diffgns"]["particle_substeps_per_s"] / timing["taichi"][
-        "particle_substeps_per_s"]
-    ratio_best = timing["diffgns"]["particle_substeps_per_s_best"] / timing["taichi"][
-        "particle_substeps_per_s_best"]
-    ratio_paired = paired_ratio(timing, "taichi")
-    for name, t in timing.items():
-        t["first_call_s"] = first_call[name]
-    report(timing, repeats, seg)
-    print(f"ratio diffgns / taichi throughput: {ratio:.3f} (ratio of medians), "
-          f"{ratio_paired:.3f} (median of paired segments), {ratio_best:.3f} (best runs)",
-          flush=True)
-
-    single = None
-    if not args.no_single_thread:
-        # supplementary: Taichi restricted to one thread (XLA's scatter is serial, and on a
-        # loaded 2-core machine a 2-thread parallel-for waits for its slowest thread)
-        ti.reset()
-        ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=1)
-        sims1 = {"taichi_1thread": TaichiMPM88(ti), "diffgns": sims["diffgns"]}
-        t1 = interleaved_timing(sims1, x0, seg, repeats)
-        r1 = t1["diffgns"]["particle_substeps_per_s"] / t1["taichi_1thread"][
-            "particle_substeps_per_s"]
-        print("supplementary run, Taichi with cpu_max_num_threads=1:")
-        report(t1, repeats, seg)
-        r1p = paired_ratio(t1, "taichi_1thread")
-        print(f"ratio diffgns / taichi(1 thread) throughput: {r1:.3f} (ratio of medians), "
-              f"{r1p:.3f} (median of paired segments)")
-        single = {"timing": t1, "taichi_config": taichi_config(),
-                  "ratio_diffgns_over_taichi_1thread": r1,
-                  "ratio_diffgns_over_taichi_1thread_paired_median": r1p}
-    total = time.perf_counter() - t_start
+    total, (first, check, res) = measure(body, sync=lambda _: None)
+    report(run, res, repeats, seg)
     agree = all(row["agree"] for row in check.values())
-    print(f"physics agree within {args.tol:.0%}: {agree}; total {total:.1f} s")
-
-    path = write_json("mpm_vs_taichi.json", {
-        "benchmark": "mpm_vs_taichi",
-        "skipped": False,
+    run.print(f"physics agree within {args.tol:.0%}: {agree}; total {total.wall_s:.1f} s "
+              f"(CPU {total.cpu_s:.1f} s)")
+    payload = {
         "problem": {
             "n_particles": N_PARTICLES, "n_grid": N_GRID, "dx": DX, "dt": DT, "p_rho": P_RHO,
             "p_vol": P_VOL, "E": E, "gravity": GRAVITY, "bound": BOUND, "v0": V0,
@@ -405,17 +375,20 @@ def main():
                            "kernels": ["shape.stencil", "transfer.p2g",
                                        "transfer.grid_velocity", "boundaries.wall_slip",
                                        "transfer.g2p"]},
-        "substeps_per_repeat": seg,
-        "repeats": repeats,
-        "timing": timing,
-        "ratio_diffgns_over_taichi": ratio,
-        "ratio_diffgns_over_taichi_best": ratio_best,
-        "ratio_diffgns_over_taichi_paired_median": ratio_paired,
-        "supplementary_taichi_single_thread": single,
+        "substeps_per_repeat": seg, "repeats": repeats, "compile": first, **res,
         "physics_check": {"tolerance_rel": args.tol, "agree": agree, "checkpoints": check},
-        "total_wall_s": total,
-    }, machine)
-    print(f"wrote {path}")
+        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s,
+    }
+    if run.mode == "both":
+        one = payload["one_thread_pinned"] = run.pinned_child()
+        r2, r1 = res["ratio_diffgns_over_taichi"], one.get("ratio_diffgns_over_taichi")
+        payload["ratios"] = {"2_threads": r2, "1_thread_pinned": r1}
+        run.print(f"diffgns / taichi throughput: 2 threads {r2:.3f}; 1 thread pinned "
+                  + ("refused (load)" if r1 is None else f"{r1:.3f}")
+                  + ("" if one.get("valid", False) else " INVALID (pinned run loaded)"),
+                  tag=False)
+    path = run.finish(args.out, payload)
+    run.print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,276 @@
+"""The benchmarks' measuring protocol and timing helper (benchmarks/protocol.py, timing.py),
+with faked load readings and a fake clock: nothing here runs a real benchmark."""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import protocol  # noqa: E402
+import timing  # noqa: E402
+
+QUIET, LOADED = (0.4, 0.8, 1.2), (3.5, 2.0, 1.0)
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    ap = argparse.ArgumentParser()
+    protocol.add_arguments(ap)
+    return ap.parse_args(list(argv))
+
+
+def start(*argv: str, load=QUIET, environ=None, **kw) -> protocol.Run:
+    return protocol.start(parse(*argv), "bench", read=lambda: load,
+                          environ={} if environ is None else environ, **kw)
+
+
+class FakeClock:
+    """A clock that the timed functions advance by hand."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+
+
+# ------------------------------------------------------------------ load check
+def test_loaded_machine_is_refused_with_exit_3(capsys):
+    with pytest.raises(SystemExit) as e:
+        start(load=LOADED)
+    assert e.value.code == protocol.EXIT_LOADED == 3
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "REFUSED" in err and "3.50 > 1.00" in err
+
+
+def test_threshold_is_configurable_and_inclusive():
+    assert start("--max-load", "4.0", load=LOADED).valid
+    assert start(load=(1.0, 1.0, 1.0)).valid  # at the threshold: quiet enough
+    with pytest.raises(SystemExit):
+        start(load=(1.01, 0.0, 0.0))
+
+
+def test_allow_loaded_marks_run_invalid_and_labels_every_line(capsys):
+    run = start("--allow-loaded", load=LOADED)
+    assert not run.valid
+    run.print("2.46 M particle-substeps/s\nratio 1.20")
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["INVALID (load 3.50) 2.46 M particle-substeps/s",
+                   "INVALID (load 3.50) ratio 1.20"]
+
+
+def test_quiet_run_is_valid_and_unlabelled(capsys):
+    run = start(load=QUIET)
+    assert run.valid and run.threads == 2 and not run.pinned
+    run.print("ratio 1.20")
+    assert capsys.readouterr().out == "ratio 1.20\n"
+
+
+def test_accuracy_only_run_is_never_refused():
+    run = start(load=LOADED, timed=False)
+    assert run.valid and not run.timed
+
+
+def test_wait_quiet_polls_until_the_load_falls():
+    readings = iter([(3.0, 0, 0), (2.0, 0, 0), (0.9, 0, 0), (5.0, 0, 0)])
+    slept = []
+    load = protocol.wait_for_quiet(1.0, 60.0, lambda: next(readings), slept.append, poll_s=5)
+    assert load[0] == 0.9 and slept == [5, 5]
+
+
+def test_wait_quiet_gives_up_after_the_timeout():
+    slept = []
+    load = protocol.wait_for_quiet(1.0, 12.0, lambda: LOADED, slept.append, poll_s=5)
+    assert load == LOADED and sum(slept) == 15  # three polls: 0 < 5 < 10 < 12 <= 15
+
+
+def test_start_waits_then_refuses_if_still_loaded():
+    slept = []
+    with pytest.raises(SystemExit):
+        start("--wait-quiet", "10", load=LOADED, sleep=slept.append)
+    assert sum(slept) >= 10
+
+
+# ------------------------------------------------------------------ JSON
+def test_json_records_validity_load_and_machine(tmp_path):
+    run = start("--allow-loaded", load=LOADED)
+    path = run.write(tmp_path / "b.json", {"ratio": 1.2})
+    doc = json.loads(path.read_text())
+    assert doc["valid"] is False and doc["ratio"] == 1.2 and doc["benchmark"] == "bench"
+    p = doc["protocol"]
+    assert p["valid"] is False and p["load_before_1_5_15"] == list(LOADED)
+    assert len(p["load_after_1_5_15"]) == 3
+    for key in ("date_utc", "git_commit", "command", "cpu_model", "threads", "pinned",
+                "thread_mode", "xla_flags", "OMP_NUM_THREADS", "max_load_1min"):
+        assert key in p, key
+    assert p["threads"] == 2 and p["date_utc"].endswith("+00:00")
+    assert "python" in doc["machine"] and "cpu_count" in doc["machine"]
+    assert start(load=QUIET).document({})["valid"] is True
+
+
+def test_combined_report_is_invalid_if_its_pinned_part_is():
+    run = start(load=QUIET)
+    assert run.document({"one_thread_pinned": {"valid": True}})["valid"] is True
+    assert run.document({"one_thread_pinned": {"valid": False}})["valid"] is False
+
+
+def test_results_path_names_a_file_in_results_or_a_given_path(tmp_path):
+    assert protocol.results_path("x.json") == protocol.RESULTS_DIR / "x.json"
+    assert protocol.results_path(tmp_path / "x.json") == tmp_path / "x.json"
+
+
+# ------------------------------------------------------------------ threads
+def test_pinned_command_and_env():
+    cmd = protocol.pinned_command(["bench.py", "--repeats", "3"], executable="/py")
+    assert cmd == ["taskset", "-c", "0", "/py", "bench.py", "--repeats", "3", "--threads", "1"]
+    env = protocol.pinned_env({"XLA_FLAGS": "--xla_foo=1", "HOME": "/h"})
+    assert env["XLA_FLAGS"] == ("--xla_foo=1 --xla_cpu_multi_thread_eigen=false "
+                                "intra_op_parallelism_threads=1")
+    assert env["OMP_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
+    assert env["OPENBLAS_NUM_THREADS"] == "1" and env[protocol.PINNED_ENV] == "1"
+    assert env["HOME"] == "/h"
+    assert protocol.pinned_env({})["XLA_FLAGS"] == protocol.ONE_THREAD_XLA_FLAGS
+
+
+def test_later_thread_option_wins_so_appending_is_enough():
+    args = parse("--threads", "both", "--result-to", "a.json", "--wait-quiet", "0",
+                 "--threads", "1")
+    assert args.threads == "1" and args.result_to == "a.json"
+
+
+def test_one_thread_mode_re_executes_itself_pinned(monkeypatch):
+    calls = []
+
+    def fake_exec(file, cmd, env):
+        calls.append((file, cmd, env))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(protocol.os, "execvpe", fake_exec)
+    monkeypatch.setattr(protocol.sys, "argv", ["bench.py", "--threads", "1"])
+    with pytest.raises(SystemExit):
+        start("--threads", "1")
+    (file, cmd, env), = calls
+    assert file == "taskset" and cmd[:3] == ["taskset", "-c", "0"]
+    assert cmd[-2:] == ["--threads", "1"] and cmd[4] == "bench.py"
+    assert env[protocol.PINNED_ENV] == "1" and "intra_op_parallelism_threads=1" in env[
+        "XLA_FLAGS"]
+
+
+def test_pinned_process_does_not_re_execute(monkeypatch):
+    monkeypatch.setattr(protocol.os, "execvpe", lambda *a: pytest.fail("re-executed"))
+    run = start("--threads", "1", environ={protocol.PINNED_ENV: "1"})
+    assert run.threads == 1 and run.pinned and run.tag == "[1 thread, pinned] "
+
+
+def test_pinned_child_runs_this_script_pinned_and_returns_its_json(monkeypatch):
+    monkeypatch.setattr(protocol.sys, "argv", ["bench.py", "--threads", "both"])
+    run = start("--threads", "both")
+    seen = {}
+
+    def runner(cmd, env):
+        seen.update(cmd=cmd, env=env)
+        out = cmd[cmd.index("--result-to") + 1]
+        Path(out).write_text(json.dumps({"valid": True, "ratio": 0.7}))
+        return subprocess.CompletedProcess(cmd, 0)
+
+    doc = run.pinned_child(wait_s=0, runner=runner)
+    assert doc == {"valid": True, "ratio": 0.7}
+    cmd = seen["cmd"]
+    assert cmd[:3] == ["taskset", "-c", "0"] and cmd[-2:] == ["--threads", "1"]
+    assert "bench.py" in cmd and seen["env"][protocol.PINNED_ENV] == "1"
+    assert not Path(cmd[cmd.index("--result-to") + 1]).exists()  # temp file removed
+    assert parse(*cmd[5:]).threads == "1"
+
+
+def test_refused_pinned_child_is_reported_not_raised():
+    run = start()
+    doc = run.pinned_child(wait_s=0, runner=lambda cmd, env: subprocess.CompletedProcess(
+        cmd, protocol.EXIT_LOADED))
+    assert doc["refused"] and doc["valid"] is False
+    with pytest.raises(RuntimeError):
+        run.pinned_child(wait_s=0, runner=lambda cmd, env: subprocess.CompletedProcess(cmd, 1))
+
+
+def test_worker_inherits_the_parents_label():
+    run = start("--allow-loaded", "--threads", "both", load=LOADED)
+    env = run.worker_env({})
+    w = protocol.worker_run("x", env)
+    assert not w.valid and w.label("t") == "INVALID (load 3.50) [2 threads] t"
+
+
+# ------------------------------------------------------------------ timing helper
+def test_measure_stops_the_clock_after_sync():
+    clock = FakeClock()
+    s, out = timing.measure(lambda: clock.advance(1.0) or "r", sync=lambda o: clock.advance(0.5),
+                            clock=clock, cpu=clock)
+    assert out == "r" and s.wall_s == pytest.approx(1.5) and s.cpu_s == pytest.approx(1.5)
+
+
+def test_time_call_times_the_first_call_apart():
+    clock = FakeClock()
+    durations = iter([5.0, 1.0, 3.0, 2.0])
+    t, _ = timing.time_call(lambda: clock.advance(next(durations)), repeats=3,
+                            sync=timing.no_sync, clock=clock, cpu=lambda: 0.0)
+    assert t["first_call_s"] == 5.0 and t["median_s"] == 2.0 and t["n"] == 3
+    assert t["compile_s"] == pytest.approx(3.0) and t["samples_s"] == [1.0, 3.0, 2.0]
+    assert t["cpu_median_s"] == 0.0 and "cpu_samples_s" in t
+
+
+def test_interleave_alternates_the_order_and_keeps_every_round():
+    calls = []
+    res = timing.interleave({"A": lambda: calls.append("A"), "B": lambda: calls.append("B")},
+                            rounds=4, sync=timing.no_sync)
+    assert calls == ["A", "B"] + ["A", "B", "B", "A", "A", "B", "B", "A"]
+    assert res.orders == [["A", "B"], ["B", "A"], ["A", "B"], ["B", "A"]]
+    doc = res.to_json()
+    assert len(doc["rounds"]) == 4 and doc["rounds"][1]["order"] == ["B", "A"]
+    assert set(doc["summary"]) == {"A", "B"} and "compile_s" in doc["summary"]["A"]
+
+
+def test_ratio_is_the_median_of_per_round_ratios():
+    clock = FakeClock()
+    walls = {"A": iter([9.0, 1.0, 2.0, 100.0]), "B": iter([9.0, 1.0, 4.0, 5.0])}
+    res = timing.interleave({k: (lambda k=k: clock.advance(next(walls[k]))) for k in walls},
+                            rounds=3, sync=timing.no_sync, clock=clock, cpu=clock)
+    # per-round ratios A/B: 1, 0.5, 20 -> median 1; the ratio of medians would be 2/4
+    assert res.ratio("A", "B") == pytest.approx(1.0)
+    assert res.summary("A")["median_s"] / res.summary("B")["median_s"] == pytest.approx(0.5)
+    assert res.ratio("A", "B", cpu=True) == pytest.approx(1.0)
+    assert res.summary("A")["first_call_s"] == 9.0
+
+
+def test_interleave_uses_each_contenders_own_sync():
+    synced = []
+    timing.interleave({"jax": lambda: 1, "torch": lambda: 2}, rounds=1, warmup=False,
+                      sync={"jax": lambda o: synced.append(("jax", o)),
+                            "torch": lambda o: synced.append(("torch", o))})
+    assert synced == [("jax", 1), ("torch", 2)]
+
+
+def test_cpu_seconds_counts_waited_for_children():
+    before = timing.cpu_seconds()
+    subprocess.run([sys.executable, "-c", "sum(i * i for i in range(3_000_000))"], check=True)
+    assert timing.cpu_seconds() - before > 0.05
+
+
+def test_finish_adds_the_pinned_run_once_and_draws_figures_only_in_the_users_run(
+        tmp_path, monkeypatch):
+    run = start("--threads", "both")
+    calls, drawn = [], []
+    monkeypatch.setattr(run, "pinned_child", lambda: calls.append(1) or {"valid": True})
+    path = run.finish(tmp_path / "a.json", {"x": 1}, drawn.append)
+    doc = json.loads(path.read_text())
+    assert calls == [1] and doc["one_thread_pinned"] == {"valid": True} and drawn == [path]
+    run.finish(tmp_path / "b.json", {"one_thread_pinned": {"valid": True}})
+    assert calls == [1]  # already measured by the script itself
+    child = start("--threads", "1", "--result-to", str(tmp_path / "c.json"),
+                  environ={protocol.PINNED_ENV: "1"})
+    assert child.finish("ignored.json", {}, drawn.append) == tmp_path / "c.json"
+    assert drawn == [path]  # a pinned child writes its JSON for the parent, no figures
