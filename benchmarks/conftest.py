@@ -38,6 +38,7 @@ def pytest_benchmark_update_machine_info(config, machine_info):
         machine_info["protocol"] = _RUN.metadata()
 
 
+@pytest.hookimpl(trylast=True)
 def pytest_terminal_summary(terminalreporter):
     if _RUN is not None and not _RUN.valid:
         terminalreporter.write_line(_RUN.label("these timings were taken on a loaded machine"))
