@@ -1,7 +1,12 @@
 """Inverse problems: transforms, optimisers, objectives and simulator adapters.
 
 ``from diffgns import inverse; inverse.optimize(...)`` is the optax loop of
-:mod:`diffgns.inverse.solve`; objectives are in :mod:`diffgns.inverse.objectives`,
+:mod:`diffgns.inverse.solve`. The package re-exports the API of its single-purpose modules:
+:mod:`~diffgns.inverse.transforms` (Bounded, Identity, DEFAULT_TRANSFORMS),
+:mod:`~diffgns.inverse.optimizers` (make_optimizer, gauss_newton_step),
+:mod:`~diffgns.inverse.gradients` (the finite-difference helper, gradient_check),
+:mod:`~diffgns.inverse.memory` (RSS, XLA memory analysis) and :mod:`~diffgns.inverse.mpm`
+(apply_theta, frames_to_rest). Objectives are in :mod:`diffgns.inverse.objectives`,
 Levenberg-Marquardt in :mod:`diffgns.inverse.lsq`.
 """
 from diffgns.inverse.gradients import (
@@ -11,20 +16,15 @@ from diffgns.inverse.gradients import (
     gradient_check,
 )
 from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
-from diffgns.inverse.solve import (
+from diffgns.inverse.mpm import MPM_STATE_PARAMS, apply_theta, frames_to_rest
+from diffgns.inverse.optimizers import gauss_newton_step, make_optimizer
+from diffgns.inverse.solve import InverseResult, evaluate_redo, optimize, record
+from diffgns.inverse.transforms import (
     DEFAULT_TRANSFORMS,
     FRICTION_ANGLE,
-    MPM_STATE_PARAMS,
     Bounded,
     Identity,
-    InverseResult,
-    apply_theta,
-    evaluate_redo,
-    frames_to_rest,
-    gauss_newton_step,
-    make_optimizer,
-    optimize,
-    record,
+    Transform,
     setup,
 )
 
@@ -35,6 +35,7 @@ __all__ = [
     "Identity",
     "InverseResult",
     "MPM_STATE_PARAMS",
+    "Transform",
     "apply_theta",
     "central_difference",
     "current_rss_mb",

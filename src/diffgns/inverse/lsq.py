@@ -4,10 +4,10 @@ When the misfit is a short vector of residuals ``r(theta)`` (e.g. the runout at 
 frames) and theta has 2-3 entries, first-order optimisers crawl along the valleys of
 ``|r|^2``, while Gauss-Newton steps ``-(J^T J)^-1 J^T r`` jump to the solution. ``J`` is
 computed in forward mode (one JVP per parameter through the whole rollout: no reverse-mode
-memory), on the transformed parameters ``u`` of :mod:`diffgns.inverse.solve`, so physical bounds
-hold. The damping ``lam`` (relative to the mean diagonal of ``J^T J``) grows 10x when a step
-raises the misfit (the step is then retried from the previous point without a new
-evaluation) and shrinks 3x after an accepted one.
+memory), on the transformed parameters ``u`` of :mod:`diffgns.inverse.transforms`, so
+physical bounds hold. The damping ``lam`` (relative to the mean diagonal of ``J^T J``) grows
+10x when a step raises the misfit (the step is then retried from the previous point without
+a new evaluation) and shrinks 3x after an accepted one.
 """
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffgns.inverse.memory import memory_stats
-from diffgns.inverse.solve import InverseResult, evaluate_redo, record, setup
+from diffgns.inverse.solve import InverseResult, evaluate_redo, record
+from diffgns.inverse.transforms import setup
 
 
 def least_squares(residual_fn: Callable, theta0: dict, max_iter: int = 20,

@@ -1,22 +1,15 @@
-"""Inverse problems: gradient-based parameter identification through any rollout.
+"""The inverse-problem loop: gradient-based parameter identification through any rollout.
 
 An inverse problem is ``optax`` on ``jax.grad(loss(simulator(theta)))``. ``theta`` is a dict
 of named physical scalars (e.g. ``{"friction_angle": 45.0}``); a simulator is any function
 ``theta -> positions (T, N, 2)`` (see :mod:`diffgns.inverse.simulators`) and an objective
-any function ``positions -> scalar`` (see :mod:`diffgns.inverse.objectives`). This module supplies
-
-* parameter transforms that keep physical bounds (:class:`Bounded`: the optimiser works on an
-  unconstrained ``u`` and ``theta = lo + (hi - lo) sigmoid(u)`` can never leave ``(lo, hi)``);
-* :func:`optimize`: the optax loop (ahead-of-time compiled gradient, XLA memory analysis,
-  a stopping rule, progress callback, a history record per iteration with parameters, loss,
-  gradient, time and memory) with exact (AD) or finite-difference gradients;
-* :func:`make_optimizer`, including ``"gauss-newton"``: for a loss that is one squared residual
-  ``r(u)^2`` the step ``-2 L / |g|^2 g`` is exactly the Newton step ``-r / r'`` on ``r``;
-* :func:`gradient_check`: AD against finite differences (values, times, fine slope scan);
-* the MPM parameter plumbing (:func:`apply_theta`) and :func:`frames_to_rest`.
-
-Levenberg-Marquardt on residual vectors (forward-mode Jacobians) is in
-:mod:`diffgns.inverse.lsq`.
+any function ``positions -> scalar`` (see :mod:`diffgns.inverse.objectives`).
+:func:`optimize` is the optax loop: ahead-of-time compiled gradient (exact, AD, or finite
+differences, :mod:`diffgns.inverse.gradients`), XLA memory analysis, stopping rules, a
+progress callback and a history record per iteration (parameters, loss, gradient, time,
+memory), on the transformed parameters of :mod:`diffgns.inverse.transforms`. Optimisers
+are in :mod:`diffgns.inverse.optimizers`; Levenberg-Marquardt on residual vectors in
+:mod:`diffgns.inverse.lsq`, which shares :func:`evaluate_redo` and :func:`record`.
 """
 from __future__ import annotations
 
@@ -32,52 +25,11 @@ import optax
 
 from diffgns.inverse.gradients import central_difference, fd_step
 from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
+from diffgns.inverse.transforms import setup
+
+__all__ = ["InverseResult", "evaluate_redo", "optimize", "record"]
 
 
-# ------------------------------------------------------------------------ transforms
-@dataclass(frozen=True)
-class Bounded:
-    """Physical parameter in the open interval ``(lo, hi)``: ``x = lo + (hi - lo) sigmoid(u)``.
-
-    ``FRICTION_ANGLE = Bounded(0, 90)`` (degrees). ``u`` is clipped to +-15 first, so even in
-    float32 every ``u`` maps strictly inside (within ~3e-7 of the range of either bound).
-    """
-
-    lo: float
-    hi: float
-
-    def forward(self, u):
-        return self.lo + (self.hi - self.lo) * jax.nn.sigmoid(jnp.clip(u, -15.0, 15.0))
-
-    def inverse(self, x, name: str = "parameter"):
-        x = float(x)
-        if not (self.lo < x < self.hi) or not math.isfinite(x):
-            raise ValueError(f"{name} = {x:g} is outside its physical range ({self.lo:g}, "
-                             f"{self.hi:g}); start from a value strictly inside it")
-        p = (x - self.lo) / (self.hi - self.lo)
-        return math.log(p / (1.0 - p))
-
-
-@dataclass(frozen=True)
-class Identity:
-    """Unbounded parameter (optimised as it is)."""
-
-    def forward(self, u):
-        return u
-
-    def inverse(self, x, name: str = "parameter"):
-        if not math.isfinite(float(x)):
-            raise ValueError(f"{name} = {x} is not finite")
-        return float(x)
-
-
-FRICTION_ANGLE = Bounded(0.0, 90.0)
-#: transforms used when a parameter's name is given without one
-DEFAULT_TRANSFORMS = {"friction_angle": FRICTION_ANGLE, "floor_mu": Bounded(0.0, 2.0),
-                      "wall_mu": Bounded(0.0, 2.0), "aspect_ratio": Bounded(0.25, 4.0)}
-
-
-# ------------------------------------------------------------------------ optimisation
 @dataclass
 class InverseResult:
     """Outcome of :func:`optimize`: final parameters and one record per iteration.
@@ -101,45 +53,6 @@ class InverseResult:
         if name is None:
             return np.array([h[key] for h in self.history])
         return np.array([h[key][name] for h in self.history])
-
-
-def gauss_newton_step(scale: float = 1.0, max_step: float = 1.0
-                      ) -> optax.GradientTransformationExtraArgs:
-    """Update ``-scale * 2 L / |g|^2 * g`` (``value=L`` passed to ``update``), each component
-    clipped to ``max_step``. For ``L = r^2`` with one residual this is the Newton step
-    ``-r / r'`` on ``r``; for a sum of squares it is Polyak's step with ``f* = 0`` doubled."""
-
-    def update(updates, state, params=None, *, value, **extra):
-        del params, extra
-        g2 = sum(jnp.sum(g * g) for g in jax.tree.leaves(updates))
-        lr = jnp.where(g2 > 0, 2.0 * scale * value / jnp.where(g2 > 0, g2, 1.0), 0.0)
-        return jax.tree.map(lambda g: jnp.clip(-lr * g, -max_step, max_step), updates), state
-
-    return optax.GradientTransformationExtraArgs(lambda params: optax.EmptyState(), update)
-
-
-def make_optimizer(name: str, learning_rate: float = 1.0, decay: float = 1.0,
-                   max_step: float = 1.0) -> optax.GradientTransformationExtraArgs:
-    """``"adam"``/``"sgd"`` (exponential learning-rate decay per iteration) or
-    ``"gauss-newton"`` (:func:`gauss_newton_step` scaled by ``learning_rate``, updates
-    clipped to ``max_step`` in optimiser units, e.g. the transformed ``u``). All accept the
-    loss ``value=`` extra argument of :func:`optimize`."""
-    if name == "gauss-newton":
-        return gauss_newton_step(learning_rate, max_step)
-    sched = optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay)
-    if name == "adam":
-        return optax.with_extra_args_support(optax.adam(sched))
-    if name == "sgd":
-        return optax.with_extra_args_support(optax.sgd(sched))
-    raise ValueError(f"optimizer {name!r} is unknown; use 'gauss-newton', 'adam' or 'sgd'")
-
-
-def setup(theta0: dict, transforms: dict | None):
-    """(transforms by name, initial u, u -> theta) for physical ``theta0``; validates it."""
-    tf = {k: (transforms or {}).get(k, DEFAULT_TRANSFORMS.get(k, Identity())) for k in theta0}
-    dtype = jnp.result_type(float)
-    u = {k: jnp.asarray(tf[k].inverse(v, k), dtype) for k, v in theta0.items()}
-    return tf, u, lambda u: {k: tf[k].forward(v) for k, v in u.items()}
 
 
 def evaluate_redo(evaluate: Callable, rebuild: Callable, on_overflow, to_theta, u, it: int):
@@ -235,9 +148,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         for k in u:  # central differences in physical units, chained to u
             along = lambda x, k=k: exe(dict(u, **{k: jnp.asarray(tf[k].inverse(x, k),
                                                                  dtype)}))[0]
-            lo, hi = getattr(tf[k], "lo", -math.inf), getattr(tf[k], "hi", math.inf)
             x = float(theta[k])
-            g_theta = central_difference(along, x, fd_step(x, fd_rel_step, lo, hi))
+            g_theta = central_difference(along, x, fd_step(x, fd_rel_step, tf[k].lo, tf[k].hi))
             g_u[k] = g_theta * jax.grad(tf[k].forward)(u[k])
         return loss, aux, g_u
 
@@ -269,39 +181,3 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         u = new
     result.wall_time_s = time.perf_counter() - t_start
     return result
-
-
-# ------------------------------------------------------------------------ MPM plumbing
-def apply_theta(params, theta: dict):
-    """Write named physical parameters into an MPMParams pytree (differentiably).
-
-    Names: friction_angle, E, nu, rho, cohesion (all bodies), floor_mu (bottom wall),
-    wall_mu (all four walls). Other names (e.g. aspect_ratio, handled by the simulator's
-    initial state) are ignored when listed in ``MPM_STATE_PARAMS``.
-    """
-    rep = {}
-    for k, v in theta.items():
-        v = jnp.asarray(v, params.E.dtype)
-        if k in ("friction_angle", "E", "nu", "rho", "cohesion"):
-            rep[k] = jnp.broadcast_to(v, getattr(params, k).shape)
-        elif k == "floor_mu":
-            rep["wall_mu"] = rep.get("wall_mu", params.wall_mu).at[2].set(v)
-        elif k == "wall_mu":
-            rep["wall_mu"] = jnp.broadcast_to(v, (4,))
-        elif k not in MPM_STATE_PARAMS:
-            raise ValueError(f"unknown parameter {k!r}; use friction_angle, E, nu, rho, "
-                             "cohesion, floor_mu, wall_mu or " + ", ".join(MPM_STATE_PARAMS))
-    return params.replace(**rep)
-
-
-#: parameters that enter through the initial state rather than MPMParams
-MPM_STATE_PARAMS = ("aspect_ratio",)
-
-
-def frames_to_rest(speed, threshold: float = 0.02, margin: int = 10, multiple: int = 25) -> int:
-    """Frames until the per-frame max speed (m/s) stays below ``threshold``, plus a margin,
-    rounded up to a multiple of ``multiple``."""
-    speed = np.asarray(speed)
-    moving = np.flatnonzero(speed >= threshold)
-    n = (moving[-1] + 1 if len(moving) else 0) + margin
-    return int(-(-n // multiple) * multiple)
