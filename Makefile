@@ -53,6 +53,10 @@ test-min: $(MIN_VENV)/.installed
 	cat $(MIN_VENV)/constraints.txt
 	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(MIN_TESTS) -k "not non_editable"
 
+# the docs site (mkdocs.yml, docs/; API reference from the docstrings) into site/
+docs: $(VENV)/.installed-docs
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow
 
