@@ -13,6 +13,7 @@ import pytest
 from diffgns import MPM, inverse
 from diffgns.inverse import objectives
 from diffgns.scene.builders import column_collapse
+from diffgns.scene.materials import friction_feature
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,7 +135,7 @@ def test_levenberg_marquardt_solves_two_residuals_and_rejects_bad_steps():
 
     def residuals(th):  # root at phi = 30, a = 1.75; strongly nonlinear in phi
         p, a = th["friction_angle"], th["aspect_ratio"]
-        return jnp.stack([jnp.tan(jnp.deg2rad(p)) - np.tan(np.deg2rad(30.0)),
+        return jnp.stack([friction_feature(p) - friction_feature(30.0),
                           0.3 * a - 0.01 * p - (0.3 * 1.75 - 0.3)])
 
     res = least_squares(residuals, {"friction_angle": 60.0, "aspect_ratio": 3.0},

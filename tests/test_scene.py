@@ -529,3 +529,20 @@ def test_granular_squares_two_masses():
     assert len(s.bodies) == 2
     with pytest.raises(SceneError, match="n_masses = 3"):
         granular_squares(0, n_masses=3)
+
+
+def test_friction_feature_is_tan_phi_with_its_derivative():
+    import jax
+    import jax.numpy as jnp
+
+    from diffgns.scene.materials import friction_feature
+
+    assert float(friction_feature(45.0)) == pytest.approx(1.0, rel=1e-6)
+    assert float(friction_feature(30.0)) == pytest.approx(1 / math.sqrt(3), rel=1e-6)
+    phis = jnp.asarray([[20.0, 30.0], [40.0, 50.0]], jnp.float32)
+    f = friction_feature(phis)
+    assert f.shape == (2, 2) and f.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(f), np.tan(np.radians(np.asarray(phis))), rtol=1e-6)
+    d = jax.grad(lambda p: friction_feature(p))(30.0)  # (pi/180) / cos^2(phi)
+    assert float(d) == pytest.approx(math.pi / 180 / math.cos(math.radians(30.0)) ** 2,
+                                     rel=1e-5)

@@ -13,6 +13,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import jax
+import jax.numpy as jnp
+from jax.typing import ArrayLike
+
 from diffgns.errors import SceneError
 
 
@@ -34,6 +38,18 @@ def lame(E: float, nu: float) -> tuple[float, float]:
     mu = E / (2.0 * (1.0 + nu))
     lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     return lam, mu
+
+
+def friction_feature(phi_deg: ArrayLike) -> jax.Array:
+    """The learned simulators' material feature of a friction angle: ``tan(phi)``.
+
+    ``phi_deg``: friction angle(s) in degrees, any shape (a Python float, an MPMParams leaf,
+    a traced parameter); returns ``tan(phi)`` of the same shape and float dtype (the default
+    float for Python numbers and integers; dimensionless, the Mohr-Coulomb friction
+    coefficient), differentiable:
+    ``d tan(phi) / d phi_deg = (pi / 180) / cos(phi)^2``. The only place diffgns computes it.
+    """
+    return jnp.tan(jnp.deg2rad(phi_deg))
 
 
 @dataclass(frozen=True)
