@@ -25,6 +25,7 @@ from diffgns.graph.fit import (  # re-exported: the training API of every networ
 )
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import did_overflow, edges
+from diffgns.interface import retry_on_overflow
 from diffgns.trajectory import KINEMATIC
 
 __all__ = ["TrainConfig", "Trainer", "load_checkpoint", "make_optimizer", "pushed_target",
@@ -58,14 +59,10 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
     n = hist.shape[0]
     over = jnp.zeros((), bool)
     for k in range(unroll):  # push-forward: the model's own predictions, no gradient
-        nb = gns.neighbors.update(hist[:, -1], nbrs)
+        x_next, nb = gns.advance(jax.lax.stop_gradient(params), hist, particle_type, material,
+                                 nbrs, window[C + 1 + k])
         over |= did_overflow(nb)
-        s, r, m = edges(nb, n)
-        acc = jax.lax.stop_gradient(gns.acceleration(params, hist, particle_type, material,
-                                                     s, r, m))
-        x_next = 2 * hist[:, -1] - hist[:, -2] + acc
-        x_next = jnp.where((particle_type == KINEMATIC)[:, None], window[C + 1 + k], x_next)
-        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
+        hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
     target = pushed_target(window, hist, unroll)  # noise and push-forward drift alike
     nb = gns.neighbors.update(hist[:, -1], nbrs)
     over |= did_overflow(nb)
@@ -126,12 +123,11 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
     C = trainer.gns.config.history
     pos = batch["positions"]
     n = pos.shape[2]
-    for attempt in range(max_retries + 1):
-        if n not in nbrs:
-            nbrs[n] = trainer.gns.allocate(jnp.asarray(pos[0, C]))
-        new_params, new_opt, loss, over = trainer.step(params, opt_state, batch, nbrs[n], key)
-        if not bool(over):
-            return new_params, new_opt, loss
-        extra = (attempt + 1) * max(1, nbrs[n].idx.shape[1] // (2 * n))
-        nbrs[n] = trainer.gns.allocate(jnp.asarray(pos[0, C]), extra_capacity=extra)
-    raise RuntimeError(f"neighbour list overflowing after {max_retries} re-allocations")
+    x = jnp.asarray(pos[0, C])
+    if n not in nbrs:
+        nbrs[n] = trainer.gns.allocate(x)
+    out, nbrs[n] = retry_on_overflow(
+        lambda nb: trainer.step(params, opt_state, batch, nb, key), nbrs[n],
+        lambda out: bool(out[3]), lambda nb, _, k: trainer.gns.neighbors.reallocate(x, nb, k),
+        max_retries)
+    return out[0], out[1], out[2]
