@@ -1,8 +1,10 @@
 """Hybrid GNS/MPM rollouts: learned frames with MPM refinement, differentiable end to end.
 
-    hyb = Hybrid(mpm, gns, gns_params, frame_stride=2, factor=4,
+    hyb = Hybrid(mpm, gns, frame_stride=2, factor=4,
                  schedule=Schedule(warmup=5, gns_frames=10, mpm_frames=2))
-    out = hyb.run(mpm.params(), mpm.init(), n_frames=125)
+    params = HybridParams(mpm.params(), network)                 # network: the GNS weights
+    frames, final = rollout(hyb, params, hyb.init(mpm.init()), n_frames=125)
+    result, _ = hyb.run(params, mpm.init(), n_frames=125)     # jitted, re-allocates on overflow
 
 Time runs in GNS frames (``frame_stride`` MPM frames each). The first ``warmup`` frames are
 MPM frames (they give the GNS its velocity history); then GNS segments of up to
