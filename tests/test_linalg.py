@@ -53,6 +53,27 @@ def test_polar_rotation(x64):
         la.eye(2, jnp.float64)))).all()
 
 
+def test_polar_rotation_is_a_rotation_and_finite_where_undefined():
+    """float32: R^T R = I, det R = 1 for det F > 0; at F = 0 and at a reflection
+    (x = F00 + F11 = 0, y = F10 - F01 = 0, det F < 0) value and gradient stay finite."""
+    F = _random_F(n=200, seed=3, scale=0.6).astype(jnp.float32)
+    F = F[:, :, np.asarray(la.det(F)) > 0]  # large rotations and stretches, det F > 0
+    n = F.shape[-1]
+    assert n > 100
+    R = la.polar_rotation(F)
+    np.testing.assert_allclose(np.asarray(la.det(R)), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(la.matmul(la.transpose(R), R)),
+                               np.asarray(la.eye(n, jnp.float32)), atol=1e-6)
+    S = la.matmul(la.transpose(R), F)
+    assert (np.asarray(S[0, 0] + S[1, 1]) > 0).all()  # the symmetric factor is positive
+    odd = jnp.stack([jnp.zeros((2, 2)), jnp.asarray([[1.0, 0.0], [0.0, -1.0]])], -1)
+    R = la.polar_rotation(odd)
+    assert np.isfinite(np.asarray(R)).all()
+    np.testing.assert_array_equal(np.asarray(R), 0.0)
+    g = jax.grad(lambda F: la.polar_rotation(F).sum())(odd)
+    assert np.isfinite(np.asarray(g)).all()
+
+
 def test_safe_norm_and_div_gradients_at_zero(x64):
     g = jax.grad(lambda x: la.safe_norm(x).sum())(jnp.zeros((2, 3)))
     assert np.isfinite(np.asarray(g)).all()

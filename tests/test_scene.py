@@ -546,3 +546,25 @@ def test_friction_feature_is_tan_phi_with_its_derivative():
     d = jax.grad(lambda p: friction_feature(p))(30.0)  # (pi/180) / cos^2(phi)
     assert float(d) == pytest.approx(math.pi / 180 / math.cos(math.radians(30.0)) ** 2,
                                      rel=1e-5)
+
+
+def test_scene_file_docstring_example_is_valid_toml_and_loads(tmp_path):
+    """The layout example in diffgns.scene.files' docstring is a complete scene file."""
+    import textwrap
+
+    import diffgns.scene.files as files
+
+    doc = files.__doc__
+    block = doc.split("::\n\n", 1)[1].split("\n\n", 1)[0]
+    text = textwrap.dedent(block)
+    assert "[[obstacles]]" in text and "[[bodies]]" in text
+    path = tmp_path / "example.toml"
+    path.write_text(text)
+    scene = load_scene(path)
+    assert scene.domain == ((0.0, 1.0), (0.0, 0.5)) and scene.dx == 0.01
+    (body,) = scene.bodies
+    assert body.material.friction_angle == 30.0 and body.shape.x1 == 0.2
+    (obstacle,) = scene.obstacles
+    assert (obstacle.x0, obstacle.y1, obstacle.surface.kind) == (0.5, 0.05, "sticky")
+    assert scene.walls.bottom.kind == "friction" and scene.walls.bottom.mu == 0.5
+    assert scene.n_particles > 0

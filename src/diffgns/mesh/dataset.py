@@ -3,19 +3,21 @@
 Meshes differ between trajectories, so each trajectory is its own group ``"00000"``,
 ``"00001"``, ... holding
 
-=================  ==========  =========  =================================================
-dataset            shape       dtype      meaning
-=================  ==========  =========  =================================================
-``mesh_pos``       (N, 2)      float64    vertex coordinates, m
-``cells``          (T, 3)      int32      triangles (vertex indices, counter-clockwise)
-``node_type``      (N,)        int32      FLUID 0, WALL 1, INFLOW 2, OUTFLOW 3
-                                          (:mod:`diffgns.mesh.geometry`)
-``on_cylinder``    (N,)        bool       wall nodes on the cylinder surface
-``velocity``       (F, N, 2)   float32    velocity at the vertices, m/s
-``pressure``       (F, N)      float32    kinematic pressure p/rho, m^2/s^2
-``time``           (F,)        float64    simulated time of each frame, s
-``cd``, ``cl``     (F,)        float64    drag and lift coefficients at the frames
-=================  ==========  =========  =================================================
+=================  ============  =========  ===============================================
+dataset            shape         dtype      meaning
+=================  ============  =========  ===============================================
+``mesh_pos``       (N, 2)        float64    vertex coordinates, m
+``cells``          (n_cells, 3)  int32      triangles (vertex indices, counter-clockwise)
+``node_type``      (N,)          int32      FLUID 0, WALL 1, INFLOW 2, OUTFLOW 3
+                                            (:mod:`diffgns.mesh.geometry`)
+``on_cylinder``    (N,)          bool       wall nodes on the cylinder surface
+``velocity``       (T, N, 2)     float32    velocity at the vertices, m/s
+``pressure``       (T, N)        float32    kinematic pressure p/rho, m^2/s^2
+``time``           (T,)          float64    simulated time of each frame, s
+``cd``, ``cl``     (T,)          float64    drag and lift coefficients at the frames
+=================  ============  =========  ===============================================
+
+N vertices, T frames (as in :mod:`diffgns.io.dataset`), ``n_cells`` triangles.
 
 with group attributes for the physics and cost (``reynolds``, ``u_max``, ``nu``, ``center``,
 ``radius``, ``length``, ``height``, ``frame_dt``, ``dt``, ``cfd_wall_per_sim_second``, ...).

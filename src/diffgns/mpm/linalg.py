@@ -60,15 +60,16 @@ def eye(n: int, dtype) -> jax.Array:
 def polar_rotation(F: jax.Array) -> jax.Array:
     """Rotation R of the polar decomposition F = R S (closed form for det F > 0).
 
-    R is the rotation by atan2(F10 - F01, F00 + F11); computed from a normalised
-    vector so the gradient is finite even at F = I.
+    R is the rotation by atan2(F10 - F01, F00 + F11), computed from the vector (x, y) =
+    (F00 + F11, F10 - F01) normalised by r = sqrt(x^2 + y^2 + tiny) > 0, so the value and
+    the gradient are finite everywhere. For det F > 0, x^2 + y^2 = |F|^2 + 2 det F > 0, so
+    ``tiny`` only guards the gradient; (x, y) = 0 needs det F <= 0 (outside the domain),
+    where R is the zero matrix.
     """
     x = F[0, 0] + F[1, 1]
     y = F[1, 0] - F[0, 1]
     r = jnp.sqrt(x * x + y * y + tiny(F.dtype))
-    # if x = y = 0 (a 180-degree rotation composed with a degenerate stretch) use R = I
-    c = jnp.where(r > 0, x / r, 1.0)
-    return rotation(c, y / r)
+    return rotation(x / r, y / r)
 
 
 def _svd_fwd_closed(F: jax.Array):

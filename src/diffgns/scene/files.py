@@ -1,17 +1,24 @@
 """Scenes from and to TOML files (and plain dicts).
 
-Layout::
+Layout (a complete, valid scene file; ``tests/test_scene.py`` loads it)::
 
-    [scene]                      # domain, dx, gravity, frame_dt, padding, cfl, dt, damping ...
-    domain = [[0.0, 1.0], [0.0, 0.5]]
-    dx = 0.01
-    [walls]                      # left/right/bottom/top = {kind = "slip"|"sticky"|"friction", mu}
+    [scene]            # domain, dx, gravity, frame_dt, padding, cfl, dt, max_speed, damping
+    domain = [[0.0, 1.0], [0.0, 0.5]]      # [[xmin, xmax], [ymin, ymax]], m
+    dx = 0.01                              # grid cell size, m
+    [walls]            # left/right/bottom/top = {kind = "slip"|"sticky"|"friction", mu}
     bottom = {kind = "friction", mu = 0.5}
-    [[bodies]]
+    [[bodies]]         # one table per body: shape, material, velocity, particles_per_cell, name
     shape = {type = "rectangle", x0 = 0.0, y0 = 0.0, x1 = 0.2, y1 = 0.2}
     material = {type = "sand", friction_angle = 30.0}
-    [[obstacles]]
-    x0 = 0.5  y0 = 0.0  x1 = 0.6  y1 = 0.05  surface = {kind = "sticky"}
+    [[obstacles]]      # one table per box obstacle: corners (m) and surface
+    x0 = 0.5
+    y0 = 0.0
+    x1 = 0.6
+    y1 = 0.05
+    surface = {kind = "sticky"}
+
+A polygon body is ``shape = {type = "polygon", vertices = [[x, y], ...]}``; the material
+tables take the fields of :mod:`diffgns.scene.materials` (``type = "sand"|"elastic"|"fluid"``).
 """
 from __future__ import annotations
 
