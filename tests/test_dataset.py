@@ -1,4 +1,5 @@
-"""Tests of diffgns.io.dataset: HDF5 layout, resume, metadata statistics, GNS npz import."""
+"""Tests of diffgns.io.dataset (HDF5 layout, resume, metadata statistics) and diffgns.io.npz
+(PyTorch-GNS npz import and export)."""
 from __future__ import annotations
 
 import json
@@ -13,11 +14,10 @@ from diffgns.io.dataset import (
     finite_difference_velocity,
     iter_dataset,
     load_dataset,
-    load_gns_npz,
     metadata_path,
     read_metadata,
-    write_gns_npz,
 )
+from diffgns.io.npz import load_gns_npz, write_gns_npz
 from diffgns.trajectory import FLUID, SAND, Trajectory
 
 DT = 0.0025

@@ -23,7 +23,7 @@ from diffgns.graph.training import (
     step_with_reallocation,
     window_loss,
 )
-from diffgns.io.dataset import write_gns_npz
+from diffgns.io.npz import write_gns_npz
 from diffgns.trajectory import SAND, Trajectory
 
 BOUNDS = ((0.0, 1.0), (0.0, 1.0))

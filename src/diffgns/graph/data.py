@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diffgns.io.dataset import compute_statistics, iter_dataset, load_gns_npz, read_metadata
+from diffgns.io.dataset import compute_statistics, iter_dataset, read_metadata
+from diffgns.io.npz import load_gns_npz
 from diffgns.trajectory import Trajectory
 
 
