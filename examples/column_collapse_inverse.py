@@ -25,20 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-import jax.numpy as jnp
-import numpy as np
-
-from diffgns import inverse
-from diffgns.inverse import objectives
-from diffgns.inverse.simulators import (
-    DEFAULT_MODEL,
-    Column,
-    ColumnCase,
-    gns_simulator,
-    hybrid_simulator,
-    mpm_simulator,
-)
-from diffgns.io import figures as viz
+from diffgns.inverse.job import OBJECTIVES, make_objective, make_simulator, solve
+from diffgns.inverse.simulators import DEFAULT_MODEL, Column, ColumnCase, load_gns
 
 GNS_PHI_RANGE = (20.0, 45.0)  # friction angles of the shipped model's training data
 GNS_ASPECT_RANGE = (0.5, 3.0)
@@ -55,13 +43,12 @@ def parse(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="results/inverse")
     ap.add_argument("--simulator", default="gns", choices=["gns", "mpm", "hybrid"])
-    ap.add_argument("--model", default=str(DEFAULT_MODEL), help="GNS model folder")
+    ap.add_argument("--model", default=str(DEFAULT_MODEL), help="GNS model folder or name")
     ap.add_argument("--target-phi", type=angle, default=30.0, help="degrees, in (0, 90)")
     ap.add_argument("--start-phi", type=angle, default=45.0, help="degrees, in (0, 90)")
     ap.add_argument("--aspect-ratio", type=float, default=1.75,
                     help="column height / width (a multiple of 1/8; GNS trained on 0.5-3)")
-    ap.add_argument("--objective", default="runout",
-                    choices=["runout", "runout-max", "runout-frame", "deposit"],
+    ap.add_argument("--objective", default="runout", choices=list(OBJECTIVES),
                     help="runout: smooth (soft-max) final runout; runout-max: farthest node; "
                          "runout-frame: smooth runout at --frame; deposit: deposit profile")
     ap.add_argument("--frame", type=int, default=-1, help="observed frame for the objective")
@@ -85,40 +72,7 @@ def parse(argv=None):
     return args
 
 
-def build(args, column: Column, observed: np.ndarray):
-    """(simulator, loss(theta) -> (loss, aux), description)."""
-    block = args.block
-    if args.simulator == "gns":
-        sim = gns_simulator(column, args.model, observed=observed,
-                            checkpoint_block=10 if block is None else (block or None))
-        rollout = sim.rollout
-        on_overflow = sim.reallocate
-    elif args.simulator == "mpm":
-        f = mpm_simulator(column, block=25 if block is None else block)
-        rollout = lambda th: (f(th), jnp.asarray(False))
-        on_overflow = None
-    else:
-        sim = hybrid_simulator(column, args.model,
-                               checkpoint_block=10 if block is None else (block or None))
-        rollout, on_overflow = sim.rollout, sim.reallocate
-    if args.objective == "deposit":
-        edges = np.linspace(0.0, column.case.domain_length, 41)
-        obj = objectives.deposit_loss(observed, edges, 4 / column.scene.dx, frame=args.frame)
-    else:
-        method = "max" if args.objective == "runout-max" else "softmax"
-        frame = args.frame if args.objective == "runout-frame" else -1
-        obj = objectives.runout_loss(observed, frame=frame, method=method)
-
-    def loss(theta):
-        pos, overflow = rollout(theta)
-        return obj(pos), {"overflow": overflow, "positions": pos}
-
-    return loss, on_overflow
-
-
 def run(args) -> dict:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     if args.simulator == "gns":
         lo, hi = GNS_PHI_RANGE
@@ -133,57 +87,21 @@ def run(args) -> dict:
     truth = {"friction_angle": args.target_phi}
     observed = column.observation(truth)  # the MPM: physical truth, seen as nodes
     print(f"observation: MPM, {column.scene.n_particles} particles -> {column.n_nodes} nodes, "
-          f"{column.n_obs} frames of {column.case.frame_stride * column.scene.frame_dt * 1e3:g}"
-          f" ms ({column.case.n_frames * column.scene.substeps} MPM substeps); "
+          f"{column.n_obs} frames of {column.frame_dt * 1e3:g} ms "
+          f"({column.n_frames * column.scene.substeps} MPM substeps); "
           f"{time.perf_counter() - t_start:.1f} s", flush=True)
-    loss, on_overflow = build(args, column, observed)
-    opt = inverse.make_optimizer(args.optimizer, args.lr or (1.0 if args.optimizer ==
-                                                            "gauss-newton" else 0.1))
-
-    def show(rec):
-        print(f"iter {rec['iteration']:2d}  phi={rec['theta']['friction_angle']:7.3f} deg  "
-              f"loss={rec['loss']:.3e}  dloss/dphi={rec['grad']['friction_angle']:+.3e}  "
-              f"t={rec['time_s']:.1f}s  rss={rec['rss_mb']:.0f}MB", flush=True)
-
+    loaded = load_gns(args.model) if args.simulator != "mpm" else None
     theta0 = {"friction_angle": args.start_phi}
-    res = inverse.optimize(loss, theta0, opt, max_iter=args.max_iter,
-                           step_tol=args.step_tol, gradient=args.gradient, has_aux=True,
-                           on_overflow=on_overflow, callback=show)
-    fitted = np.asarray(res.aux["positions"])
-    summary = dict(
-        simulator=args.simulator, objective=args.objective, optimizer=args.optimizer,
-        gradient=args.gradient, aspect_ratio=args.aspect_ratio, target=truth, start=theta0,
-        recovered=res.theta, error_deg=res.theta["friction_angle"] - args.target_phi,
-        iterations=len(res.history) - 1, evaluations=len(res.history),
-        converged=res.converged, stop_reason=res.stop_reason,
-        compile_s=res.compile_s, optimisation_time_s=res.wall_time_s,
-        time_per_iteration_s=float(np.median([h["time_s"] for h in res.history[1:]]
-                                             or [res.history[0]["time_s"]])),
-        xla_gradient_memory=res.xla_memory,
-        nodes=column.n_nodes, particles=column.scene.n_particles, frames=column.n_obs,
-        model=args.model if args.simulator == "gns" else None,
-        history=[{k: v for k, v in h.items() if k != "aux"} for h in res.history])
-    viz.plot_convergence(res, out / "convergence.png", truth=truth)
-    viz.plot_deposits([(observed[0], "initial column"),
-                       (observed[-1], f"target: MPM, phi={args.target_phi:g}"),
-                       (fitted[-1], f"recovered: {args.simulator}, "
-                                    f"phi={res.theta['friction_angle']:.2f}")],
-                      out / "deposits.png", column.bounds)
-    summary["wall_time_s"] = time.perf_counter() - t_start  # the whole job, with compiling
-    summary["peak_rss_mb"] = inverse.peak_rss_mb()
-    if args.fd_check:  # after the job's figures, so they exclude this extra work
-        t0 = time.perf_counter()
-        summary["gradient_check"] = inverse.gradient_check(lambda th: loss(th)[0], theta0,
-                                                           scan=10)
-        summary["gradient_check"]["seconds"] = time.perf_counter() - t0
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"wall time {summary['wall_time_s']:.1f} s (compile {res.compile_s:.1f} s), "
-          f"{summary['iterations']} iterations ({res.stop_reason}), peak RSS "
-          f"{summary['peak_rss_mb']:.0f} MB, XLA gradient temp "
-          f"{res.xla_memory.get('temp_size_in_bytes', 0) / 1e6:.0f} MB; outputs in {out}")
-    print(f"recovered friction angle: {res.theta['friction_angle']:.2f} deg "
-          f"(target {args.target_phi:g}, {args.simulator})")
-    return summary
+    sim = make_simulator(args.simulator, column, args.model, loaded=loaded, observed=observed,
+                         block=args.block, theta0=theta0)
+    objective = make_objective(args.objective, column, observed=observed, frame=args.frame)
+    return solve(sim, objective, theta0, column, args.out,
+                 optimizer=args.optimizer, lr=args.lr, max_iter=args.max_iter,
+                 step_tol=args.step_tol, gradient=args.gradient, observed=observed,
+                 truth=truth, label=args.simulator, fd_check=args.fd_check,
+                 t_start=t_start, extra=dict(
+                     objective=args.objective, aspect_ratio=args.aspect_ratio,
+                     model=args.model if args.simulator != "mpm" else None))
 
 
 COMPARE = [("gns", ["--simulator", "gns"]), ("mpm", ["--simulator", "mpm"]),

@@ -129,13 +129,13 @@ def main(argv=None):
         sim.allocate(start)
         simulate, on_overflow = sim.rollout, sim.reallocate
     else:
-        f = mpm_simulator(col)
-        simulate, on_overflow = (lambda th: (f(th), jnp.asarray(False))), None
+        sim = mpm_simulator(col)
+        simulate, on_overflow = sim.rollout, sim.reallocate
     print(f"observation: MPM phi={args.target_phi:g}, {second}={args.target_second:g} "
           f"({target_col.n_nodes} nodes); simulator {args.simulator} on a column of aspect "
           f"ratio {a_sim:g} ({col.n_nodes} nodes); {time.perf_counter() - t_start:.1f} s",
           flush=True)
-    edges = jnp.linspace(0.0, col.case.domain_length, 41)
+    edges = jnp.linspace(*col.bounds[0], 41)
     sharp = 4 / col.scene.dx
     final = objectives.runout_residual(observed, method="softmax")
     if args.objective == "deposit":  # |r|^2 = mean((h - h_obs)^2) / mean(h_obs^2)

@@ -1,5 +1,6 @@
 """Inverse problems through the GNS: gradients of the runout objective w.r.t. the friction
-angle (against finite differences, with and without checkpointing), simulator plumbing."""
+angle (against finite differences, with and without checkpointing), simulator plumbing,
+neighbour-list re-allocation held in the adapter's state."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,16 +33,16 @@ def _column_history(dtype):
     return (x0[None] + fall).astype(dtype)
 
 
-def _sim(checkpoint_block, dtype):
+def _sim(checkpoint_block, dtype, **kw):
     cfg = GNSConfig(bounds=((0.0, 0.3), (0.0, 0.2)), radius=0.032, latent=16, mp_steps=2,
                     mlp_layers=1, history=C)
-    gns = GNS(cfg, Normalizers.from_metadata(META, 0.0), compiler_options=FAST)
+    gns = GNS(cfg, Normalizers.from_metadata(META, 0.0))
     hist = _column_history(dtype)
     ptype = np.full(hist.shape[1], 6, np.int32)
-    params = gns.init(jax.random.key(1), (np.swapaxes(hist, 0, 1), ptype,
-                                          np.ones(hist.shape[1], dtype)))
+    params = gns.init_network(jax.random.key(1), (np.swapaxes(hist, 0, 1), ptype,
+                                                  np.ones(hist.shape[1], dtype)))
     params = jax.tree.map(lambda p: jnp.asarray(p, dtype), params)
-    return GNSSimulator(gns, params, hist, ptype, STEPS, checkpoint_block)
+    return GNSSimulator(gns, params, hist, ptype, STEPS, checkpoint_block, **kw)
 
 
 def _loss_fn(sim):
@@ -84,10 +85,32 @@ def test_simulator_shapes_and_history_validation():
     assert pos.shape == (C + 1 + STEPS, 24, 2)
     np.testing.assert_array_equal(np.asarray(pos[: C + 1]), _column_history(np.float32))
     with pytest.raises(ValueError, match="needs 6 initial frames"):
-        GNSSimulator(sim.gns, sim.params, _column_history(np.float32)[:3], np.full(24, 6), 4)
+        GNSSimulator(sim.gns, sim.network, _column_history(np.float32)[:3], np.full(24, 6), 4)
 
 
-def test_column_observation_operator_and_model_checks():
+def test_overflow_is_reported_and_reallocation_grows_the_state_list():
+    """A list allocated with no head-room overflows as the column spreads; reallocate()
+    replaces the adapter's initial state by one whose list fits, and the redo matches a
+    rollout that never overflowed."""
+    tight = _sim(checkpoint_block=None, dtype=np.float32, extra_capacity=0)
+    tight.state = tight.state._replace(
+        nbrs=tight.gns.neighbors.allocate(tight.state.history[:, -1] * 2.7))  # no pairs
+    run = jax.jit(lambda phi: tight.rollout({"friction_angle": phi}))
+    _, overflow = run(jnp.float32(35.0))
+    assert bool(overflow)
+    cap = tight.state.nbrs.idx.shape
+    tight.reallocate({"friction_angle": 35.0})
+    assert tight.state.nbrs.idx.shape[1] > cap[1]
+    pos, overflow = jax.jit(lambda phi: tight.rollout({"friction_angle": phi}))(
+        jnp.float32(35.0))
+    ref = _sim(checkpoint_block=None, dtype=np.float32, extra_capacity=8)
+    ref_pos, ref_overflow = jax.jit(lambda phi: ref.rollout({"friction_angle": phi}))(
+        jnp.float32(35.0))
+    assert not bool(overflow) and not bool(ref_overflow)
+    np.testing.assert_allclose(np.asarray(pos), np.asarray(ref_pos), atol=1e-6)
+
+
+def test_column_observation_operator_and_model_checks(tmp_path):
     col = Column(ColumnCase(aspect_ratio=1.0))
     x = jnp.asarray(col.state.x.T)
     traj = jnp.stack([x, x + 0.01, x + 0.02])  # (3, N, 2)
@@ -103,8 +126,10 @@ def test_column_observation_operator_and_model_checks():
                       observed=np.zeros((10, 64, 2)), loaded=loaded)
     with pytest.raises(ValueError, match="observed trajectory"):
         gns_simulator(col, loaded=loaded)
-    with pytest.raises(FileNotFoundError, match="no GNS model"):
+    with pytest.raises(FileNotFoundError, match="not a shipped model"):
         load_gns("/nonexistent/model")
+    with pytest.raises(FileNotFoundError, match="no GNS model"):
+        load_gns(tmp_path)  # a folder without config.json
     hyb = hybrid_simulator(col, loaded=loaded)  # the hybrid hook: same observation operator
     assert hyb.n_frames == col.n_obs - 1 and callable(hyb.rollout)
     with pytest.raises(ValueError, match="frame_stride"):

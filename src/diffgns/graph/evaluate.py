@@ -14,44 +14,48 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffgns import metrics
-from diffgns.graph.gns import GNS
+from diffgns.graph.gns import GNS, GNSParams, GNSState
+from diffgns.interface import rollout_jit, rollout_safe
 from diffgns.trajectory import Trajectory
 
 HORIZONS = (1, 10, 50, 100)
 
 
-def reference_inputs(gns: GNS, ref: Trajectory):
-    """Rollout inputs from the first ``history + 1`` frames of ``ref``: ``(initial history
-    (N, C+1, 2) m, particle_type (N,), material (N,), number of frames to predict)``."""
+def reference_inputs(gns: GNS, network, ref: Trajectory, extra_capacity: int = 0
+                     ) -> tuple[GNSParams, GNSState, int]:
+    """Rollout inputs from the first ``history + 1`` frames of ``ref``: ``(GNSParams (network,
+    material (N,) of ``ref``), initial GNSState (history (N, C+1, 2) m, allocated neighbour
+    list), number of frames to predict)`` (outside jit: allocates)."""
     C = gns.config.history
     pos = jnp.asarray(ref.positions)
-    hist = jnp.swapaxes(pos[: C + 1], 0, 1)
-    return (hist, jnp.asarray(ref.particle_type), jnp.asarray(ref.material),
-            pos.shape[0] - C - 1)
+    state = gns.init(jnp.swapaxes(pos[: C + 1], 0, 1), jnp.asarray(ref.particle_type),
+                     extra_capacity=extra_capacity)
+    return GNSParams(network, jnp.asarray(ref.material)), state, pos.shape[0] - C - 1
 
 
-def rollout_reference(gns: GNS, params, ref: Trajectory, n_steps: int | None = None,
+def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = None,
                       timed: bool = True):
-    """GNS rollout from the first ``history + 1`` frames of ``ref``.
+    """GNS rollout from the first ``history + 1`` frames of ``ref`` (re-allocating the
+    neighbour list on overflow, :func:`~diffgns.interface.rollout_safe`).
 
     Returns (Trajectory on the same frames as ``ref``, seconds of a steady (second, compiled)
     rollout, or None when ``timed`` is False and the rollout runs once).
     """
     C = gns.config.history
     pos = jnp.asarray(ref.positions)
-    hist, ptype, mat, n_all = reference_inputs(gns, ref)
+    params, state, n_all = reference_inputs(gns, network, ref)
     n_steps = n_all if n_steps is None else n_steps
-    xs, nbrs = gns.rollout_safe(params, hist, ptype, mat, n_steps)  # compiles
+    frames, _, start = rollout_safe(gns, params, state, n_steps)  # compiles
     seconds = None
     if timed:
         t0 = time.perf_counter()
-        xs, _ = gns.rollout_safe(params, hist, ptype, mat, n_steps, nbrs)
-        jax.block_until_ready(xs)
+        jax.block_until_ready(rollout_jit(gns, params, start, n_frames=n_steps,
+                                          checkpoint_block=None))
         seconds = time.perf_counter() - t0
-    full = jnp.concatenate([pos[: C + 1], xs])
+    full = jnp.concatenate([pos[: C + 1], frames.positions[1:]])
     vel = jnp.concatenate([jnp.zeros_like(full[:1]), jnp.diff(full, axis=0)]) / ref.frame_dt
-    traj = Trajectory(positions=full, velocities=vel, particle_type=ptype, material=mat,
-                      frame_dt=ref.frame_dt, bounds=ref.bounds)
+    traj = Trajectory(positions=full, velocities=vel, particle_type=state.particle_type,
+                      material=params.material, frame_dt=ref.frame_dt, bounds=ref.bounds)
     return traj, seconds
 
 
@@ -87,13 +91,13 @@ def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | Non
     return out
 
 
-def evaluate(gns: GNS, params, refs: list[Trajectory], n_steps: int | None = None,
+def evaluate(gns: GNS, network, refs: list[Trajectory], n_steps: int | None = None,
              timed: bool = False) -> dict:
     """Score rollouts on every reference; returns per-case rows and their means (rollout
     time only when ``timed``, which runs each rollout a second time)."""
     rows = []
     for i, ref in enumerate(refs):
-        traj, sec = rollout_reference(gns, params, ref, n_steps, timed)
+        traj, sec = rollout_reference(gns, network, ref, n_steps, timed)
         row = score(traj, ref if n_steps is None else _cut(ref, len(traj.positions)),
                     start=gns.config.history)
         row.update(case=i, rollout_s=sec, particles=int(ref.n_particles),

@@ -1,9 +1,13 @@
-"""Accuracy and cost of MPM, GNS and hybrid runs of one column collapse, side by side.
+"""Accuracy and cost of MPM, GNS and hybrid runs of one scene, side by side.
 
-Used by ``diffgns hybrid`` and ``benchmarks/hybrid_pareto.py``. Every simulator is scored
-against one reference trajectory (normally a finer MPM) on the same GNS frames:
+Used by ``diffgns hybrid`` and ``benchmarks/hybrid_pareto.py``. Any scene a GNS model
+supports (:func:`diffgns.graph.support.check_scene`: its training box, sand, the MPM
+resolution and frame it emulates) runs; the column collapse of the model's training data is
+built from the model folder (:func:`column_scene`). Every simulator is scored against one
+reference trajectory (normally a finer MPM) on the same GNS frames:
 
-* runout error ``|L - L_ref| / L_ref`` at the last frame (farthest particle from the wall);
+* runout error ``|L - L_ref| / L_ref`` at the last frame (farthest particle from the box's
+  left wall);
 * material-point position error over time: each particle is compared with the mean of the
   reference particles that started nearest to it (resolutions may differ), averaged over
   particles; reported at the last frame and as the mean over all frames.
@@ -19,7 +23,10 @@ import jax
 import numpy as np
 
 from diffgns import MPM
-from diffgns.hybrid.simulator import Hybrid, Schedule
+from diffgns.graph.support import check_scene
+from diffgns.graph.support import node_factor as _node_factor
+from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
+from diffgns.interface import rollout_jit
 from diffgns.scene.builders import column_collapse
 
 
@@ -40,7 +47,8 @@ def position_error(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
 
 
 def score_against(x: np.ndarray, x_ref: np.ndarray, wall_x: float = 0.0) -> dict:
-    """Runout and material-point errors of positions ``x`` (T, N, 2) against ``x_ref``."""
+    """Runout (from ``wall_x``, m) and material-point errors of positions ``x`` (T, N, 2)
+    against ``x_ref``."""
     err = position_error(x, x_ref)
     L, Lr = x[-1, :, 0].max() - wall_x, x_ref[-1, :, 0].max() - wall_x
     return dict(runout_m=float(L), runout_ref_m=float(Lr),
@@ -61,82 +69,113 @@ def _steady(fn, repeats: int):
     return out, dict(seconds=med, seconds_all=ts, compile_s=max(0.0, first - med))
 
 
-def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int = 8,
-                 domain=(0.8, 0.35)):
-    """The column collapse the shipped GNS was trained on (width 0.1 m)."""
-    return column_collapse(width=0.1, aspect_ratio=aspect_ratio, friction_angle=friction_angle,
-                           cells_across=cells_across, domain_length=domain[0],
-                           domain_height=domain[1])
-
-
 def model_cells(info: dict) -> int:
-    """MPM resolution (cells across the column) of a GNS model's training data."""
-    return int(info.get("source", {}).get("cells_across", 8))
+    """MPM resolution (cells across the training column) of a GNS model's training data."""
+    src = info.get("source") or {}
+    if "cells_across" not in src:
+        raise ValueError("the model folder records no source.cells_across (the MPM resolution "
+                         "of its training data)")
+    return int(src["cells_across"])
+
+
+def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int, info: dict):
+    """The column collapse of a model's training data (``info["source"]``: column width and
+    box) at ``cells_across`` cells across the column."""
+    src = info.get("source") or {}
+    bounds = src.get("bounds") or info["gns"]["bounds"]
+    (x0, x1), (y0, y1) = bounds
+    if src.get("kind", "column") != "column" or "width" not in src or (x0, y0) != (0, 0):
+        raise ValueError(f"the model was not trained on column collapses from the origin "
+                         f"(source {src}); give a scene instead")
+    return column_collapse(width=float(src["width"]), aspect_ratio=aspect_ratio,
+                           friction_angle=friction_angle, cells_across=cells_across,
+                           domain_length=x1 - x0, domain_height=y1 - y0)
 
 
 def run_mpm(scene, n_frames: int, stride: int, repeats: int = 3):
     """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
-    out, t = _steady(lambda: sim.rollout_full(p, s, n_frames=n_frames * stride), repeats)
+    p, s = sim.params(), sim.init()
+    out, t = _steady(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
+                     repeats)
     t["substeps_per_frame"] = sim.n_sub
-    return np.asarray(out[0])[::stride], t
+    return np.asarray(out)[::stride], t
 
 
 def node_factor(info: dict, cells_across: int) -> int:
     """MPM particles per GNS node when a GNS model runs on the MPM at ``cells_across`` cells:
     its training factor scaled so that the nodes keep the spacing it was trained on."""
-    f = info.get("factor", 1) * (cells_across / model_cells(info)) ** 2
-    if abs(f - round(f)) > 1e-9 or round(f) < 1:
-        raise ValueError(f"the GNS (factor {info.get('factor', 1)} at {model_cells(info)} cells)"
-                         f" cannot run on {cells_across} cells: {f:g} particles per node")
-    return int(round(f))
+    return _node_factor(int(info.get("factor", 1)), 1.0 / model_cells(info), 1.0 / cells_across)
+
+
+def make_hybrid(scene, gns, info: dict, schedule: Schedule, resolution: str = "exact",
+                model: str = "the model") -> Hybrid:
+    """The :class:`Hybrid` of ``scene`` and a trained GNS (``info``: its ``config.json``);
+    refuses a scene the model does not support, naming why (``resolution``: see
+    :func:`~diffgns.graph.support.check_scene`)."""
+    sup = check_scene(scene, info, resolution, model)
+    return Hybrid(MPM(scene), gns, sup.frame_stride, sup.factor, schedule)
 
 
 def run_hybrid(scene, gns, gns_params, info: dict, schedule: Schedule, n_frames: int,
                repeats: int = 3, cells_across: int | None = None):
     """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames;
-    ``cells_across``: the resolution of ``scene`` when it is not the model's own."""
-    sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
-    factor = node_factor(info, cells_across or model_cells(info))
-    hyb = Hybrid(sim, gns, gns_params, info.get("frame_stride", 1), factor, schedule)
+    ``cells_across``: the resolution of ``scene`` when it is not the model's own (nodes then
+    keep the trained spacing)."""
+    own = cells_across is None or cells_across == model_cells(info)
+    hyb = make_hybrid(scene, gns, info, schedule, "exact" if own else "node-spacing")
+    params = HybridParams(hyb.mpm.params(), gns_params)
+    s = hyb.mpm.init()
     t0 = time.perf_counter()
-    _, nbrs = jax.block_until_ready(hyb.run(p, s, n_frames))  # allocate a list that fits
+    _, state = jax.block_until_ready(hyb.run(params, s, n_frames))  # allocate a list that fits
     first = time.perf_counter() - t0
-    res, t = _steady(lambda: hyb.run(p, s, n_frames, nbrs)[0], repeats)
+    res, t = _steady(lambda: hyb.run(params, s, n_frames, state=state)[0], repeats)
     t["compile_s"] = max(0.0, first - t["seconds"])
     t["mpm_fraction"] = res.mpm_fraction
     return res, t
 
 
-def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedule,
-            n_frames: int, reference_cells: int = 16, cells_across: int | None = None,
-            repeats: int = 3) -> dict:
-    """MPM (reference and at ``cells_across``), GNS alone and the hybrid on one column.
+def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
+                  repeats: int = 3, labels: tuple[str, str] | None = None,
+                  cells_across: int | None = None) -> dict:
+    """MPM (``reference`` scene and ``scene``), GNS alone and the hybrid on ``scene``.
 
     ``model`` is ``(gns, params, info)`` from :func:`~diffgns.graph.train_loop.load_model`;
-    the GNS and hybrid run on the MPM resolution of its training data unless ``cells_across``
-    is given.
-    Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s}``; each row
-    has the label, the scores of :func:`score_against` and the timing.
+    ``labels``: names of the reference and the MPM rows (default: their cell sizes).
+    Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s, "bounds"}``;
+    each row has the label, the scores of :func:`score_against` and the timing.
     """
     gns, gp, info = model
-    stride = info.get("frame_stride", 1)
-    cells_across = cells_across or model_cells(info)
-    ref, t_ref = run_mpm(column_scene(aspect_ratio, friction_angle, reference_cells),
-                         n_frames, stride, repeats=1)
-    scene = column_scene(aspect_ratio, friction_angle, cells_across)
-    x_mpm, t_mpm = run_mpm(scene, n_frames, stride, repeats)
+    stride = int(info.get("frame_stride", 1))
+    labels = labels or (f"MPM dx={reference.dx:g} m (reference)", f"MPM dx={scene.dx:g} m")
+    wall = float(scene.domain[0][0])
     gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0,
                         particle_map=schedule.particle_map)
-    runs = {f"MPM {reference_cells} cells (reference)": (ref, t_ref),
-            f"MPM {cells_across} cells": (x_mpm, t_mpm)}
+    # refuse an unsupported scene before any run
+    check_scene(scene, info, "exact" if cells_across is None else "node-spacing")
+    ref, t_ref = run_mpm(reference, n_frames, stride, repeats=1)
+    x_mpm, t_mpm = run_mpm(scene, n_frames, stride, repeats)
+    runs = {labels[0]: (ref, t_ref), labels[1]: (x_mpm, t_mpm)}
     for sched in (gns_only, schedule):
         res, t = run_hybrid(scene, gns, gp, info, sched, n_frames, repeats, cells_across)
         runs[sched.label] = (np.asarray(res.positions), t)
-    rows = []
-    for label, (x, t) in runs.items():
-        rows.append(dict(label=label, **score_against(x, ref), **t))
+    rows = [dict(label=label, **score_against(x, ref, wall), **t)
+            for label, (x, t) in runs.items()]
     return dict(rows=rows, positions={k: v[0] for k, v in runs.items()},
                 frame_dt=float(scene.frame_dt) * stride, bounds=scene.domain)
+
+
+def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedule,
+            n_frames: int, reference_cells: int = 16, cells_across: int | None = None,
+            repeats: int = 3) -> dict:
+    """:func:`compare_scene` on the column collapse of the model's training data (its box and
+    column width), at the MPM resolution it emulates unless ``cells_across`` is given; the
+    reference is that column at ``reference_cells`` cells across."""
+    info = model[2]
+    own = model_cells(info)
+    cells = cells_across or own
+    scene = column_scene(aspect_ratio, friction_angle, cells, info)
+    reference = column_scene(aspect_ratio, friction_angle, reference_cells, info)
+    return compare_scene(model, scene, reference, schedule, n_frames, repeats,
+                         (f"MPM {reference_cells} cells (reference)", f"MPM {cells} cells"),
+                         None if cells == own else cells)

@@ -1,0 +1,144 @@
+"""``diffgns rollout`` (a trained GNS or MeshGraphNet against a reference trajectory) and
+``diffgns hybrid`` (MPM, GNS and hybrid runs of one column collapse, side by side)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def _is_mesh_model(path) -> bool:
+    meta = Path(path) / "model.json"
+    return meta.exists() and json.loads(meta.read_text()).get("kind") == "meshgraphnet"
+
+
+def _rollout(args) -> int:
+    from diffgns.models import model_path
+
+    args.model = model_path(args.model)
+    if _is_mesh_model(args.model):
+        return _rollout_mesh(args)
+    from diffgns.graph.data import load_trajectories
+    from diffgns.graph.evaluate import rollout_reference, score
+    from diffgns.graph.train_loop import load_model
+    from diffgns.io.figures import animate
+
+    gns, params, info = load_model(args.model)
+    refs, _ = load_trajectories(args.data, info.get("factor", 1), info.get("frame_stride", 1))
+    ref = refs[args.index]
+    pred, sec = rollout_reference(gns, params, ref)
+    s = score(pred, ref, start=gns.config.history)
+    s["rollout_s"] = sec
+    print(json.dumps(s, indent=2))
+    if args.out:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
+        (Path(args.out) / "rollout_metrics.json").write_text(json.dumps(s, indent=2))
+        print(f"animation written to {args.out}/rollout.gif")
+    return 0
+
+
+def _rollout_mesh(args) -> int:
+    from diffgns.mesh.evaluate import evaluate_trajectory, pressure_force_coefficients
+    from diffgns.mesh.figures import animate_vorticity, plot_lift, vorticity
+    from diffgns.mesh.train import load_cylinder, load_model
+
+    model, params, info = load_model(args.model)
+    traj = load_cylinder(args.data)[args.index]
+    r = evaluate_trajectory(model, params, traj, info["padding"])
+    fields = {k: r.pop(k) for k in ("velocity", "pressure", "long_pressure")}
+    print(json.dumps(r, indent=2))
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "rollout_metrics.json").write_text(json.dumps(r, indent=2))
+        n, dt = len(traj["mesh_pos"]), float(traj["attrs"]["frame_dt"])
+        animate_vorticity(traj["mesh_pos"], traj["cells"],
+                          vorticity(traj["mesh_pos"], traj["cells"], traj["velocity"]),
+                          vorticity(traj["mesh_pos"], traj["cells"], fields["velocity"][:, :n]),
+                          out / "vorticity.gif", frame_dt=dt)
+        cl = {"CFD": pressure_force_coefficients(traj, traj["pressure"][1:])[1],
+              "MeshGraphNet": pressure_force_coefficients(traj, fields["long_pressure"])[1]}
+        t = np.arange(1, len(cl["MeshGraphNet"]) + 1) * dt
+        plot_lift(t, cl, out / "lift.png")
+        print(f"vorticity.gif, lift.png and rollout_metrics.json written to {out}")
+    return 0
+
+
+def _hybrid(args) -> int:
+    import jax.numpy as jnp
+
+    from diffgns.graph.train_loop import load_model
+    from diffgns.hybrid.compare import compare, compare_scene
+    from diffgns.hybrid.simulator import Schedule
+    from diffgns.io.figures import animate
+    from diffgns.models import model_path
+    from diffgns.trajectory import Trajectory
+
+    sched = Schedule(warmup=args.warmup, gns_frames=args.gns_frames,
+                     mpm_frames=args.mpm_frames, handoff=args.handoff,
+                     adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
+    model = load_model(model_path(args.model))
+    if args.scene:
+        from diffgns.scene.files import load_scene
+
+        scene = load_scene(args.scene)
+        reference = scene.replace(dx=scene.dx / args.reference_refine)
+        out = compare_scene(model, scene, reference, sched, args.frames)
+    else:
+        out = compare(model, args.aspect_ratio, args.friction_angle, sched, args.frames,
+                      args.reference_cells, args.cells_across)
+    print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s}")
+    for r in out["rows"]:
+        print(f"{r['label']:44s} {r['runout_error']:10.3f} "
+              f"{1e3 * r['mean_position_error_m']:10.2f} {r['seconds']:8.3f}")
+    dest = Path(args.out)
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / "hybrid_comparison.json").write_text(json.dumps(out["rows"], indent=2))
+    trajs = [Trajectory(positions=jnp.asarray(x), velocities=jnp.zeros_like(x),
+                        particle_type=jnp.zeros(x.shape[1], jnp.int32),
+                        material=jnp.zeros(x.shape[1]), frame_dt=out["frame_dt"],
+                        bounds=out["bounds"])
+             for x in out["positions"].values()]
+    animate(trajs, dest / "hybrid.gif", titles=list(out["positions"]), every=2)
+    print(f"comparison written to {dest}/hybrid.gif and hybrid_comparison.json")
+    return 0
+
+
+def register(sub) -> None:
+    """Add the ``rollout`` and ``hybrid`` parsers to ``sub``."""
+    r = sub.add_parser("rollout", help="roll a trained GNS or MeshGraphNet out against a "
+                       "reference trajectory and animate both")
+    r.add_argument("--model", required=True,
+                   help="model folder (params.msgpack, config.json) or shipped model name")
+    r.add_argument("--data", required=True, help="dataset with reference trajectories")
+    r.add_argument("--index", type=int, default=0)
+    r.add_argument("--out", default=None, help="folder for the MPM-vs-GNS animation")
+    r.set_defaults(func=_rollout)
+
+    h = sub.add_parser("hybrid", help="hybrid GNS/MPM run of a scene (default: a column "
+                       "collapse of the model's training data) against the MPM and the GNS")
+    h.add_argument("--model", default="gns_columns", help="model folder or shipped name")
+    h.add_argument("--scene", default=None,
+                   help="scene TOML file (instead of the column options below); the "
+                   "reference MPM has --reference-refine times finer cells")
+    h.add_argument("--reference-refine", type=int, default=2,
+                   help="with --scene: reference cell size = scene dx / this")
+    h.add_argument("--aspect-ratio", type=float, default=1.75)
+    h.add_argument("--friction-angle", type=float, default=27.5, help="degrees")
+    h.add_argument("--frames", type=int, default=125, help="GNS frames")
+    h.add_argument("--warmup", type=int, default=5, help="MPM frames before the first GNS")
+    h.add_argument("--gns-frames", type=int, default=5, help="M: GNS frames per segment")
+    h.add_argument("--mpm-frames", type=int, default=2, help="K: MPM frames per segment")
+    h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"])
+    h.add_argument("--particle-map", default="affine", choices=["affine", "rigid"],
+                   help="how MPM particles follow their GNS node in GNS frames")
+    h.add_argument("--adaptive-tol", type=float, default=None,
+                   help="energy-balance tolerance (J/kg) for adaptive switching")
+    h.add_argument("--cells-across", type=int, default=None,
+                   help="MPM resolution of GNS/hybrid runs (default: the model's data)")
+    h.add_argument("--reference-cells", type=int, default=16,
+                   help="resolution of the reference MPM")
+    h.add_argument("--out", default="results/hybrid")
+    h.set_defaults(func=_hybrid)

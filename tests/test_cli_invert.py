@@ -1,0 +1,107 @@
+"""``diffgns invert`` end to end on a scene that is not a column collapse (small, float64)."""
+import json
+from pathlib import Path
+
+import pytest
+
+from diffgns.cli import build_parser, main
+from diffgns.cli import invert as cli_invert
+from diffgns.inverse import job
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# A 0.1 m sand square launched at 1 m/s along a frictional floor into a low box: 64
+# particles, 16 x 8 cells, 40 frames of 5 ms (its front moves ~2 mm per degree of phi).
+TINY = """
+[scene]
+domain = [[0.0, 0.4], [0.0, 0.2]]
+dx = 0.025
+frame_dt = 5e-3
+[walls]
+bottom = {kind = "friction", mu = 0.5}
+[[bodies]]
+name = "mass"
+shape = {type = "rectangle", x0 = 0.05, y0 = 0.0, x1 = 0.15, y1 = 0.1}
+material = {type = "sand", friction_angle = 30.0}
+velocity = [1.0, 0.0]
+[[obstacles]]
+x0 = 0.25
+y0 = 0.0
+x1 = 0.3
+y1 = 0.025
+surface = {kind = "friction", mu = 0.5}
+"""
+
+
+def test_invert_recovers_the_friction_angle_of_a_sliding_mass_with_the_mpm(
+        tmp_path, x64, capsys):
+    scene = tmp_path / "slide.toml"
+    scene.write_text(TINY)
+    obs = tmp_path / "obs"
+    assert main(["simulate", "--scene", str(scene), "--frames", "40", "--dtype", "float64",
+                 "--vtk-every", "40", "--out", str(obs)]) == 0
+    out = tmp_path / "inv"
+    rc = main(["invert", str(scene), "--fit", "friction_angle=40:0:90", "--observation",
+               str(obs / "trajectory.h5"), "--simulator", "mpm", "--dtype", "float64",
+               "--step-tol", "0.001", "--max-iter", "10", "--truth", "friction_angle=30",
+               "--out", str(out)])
+    assert rc == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    iters = [ln for ln in lines if ln.startswith("iter ")]
+    assert iters[0].startswith("iter  0  phi= 40.000 deg") and len(iters) >= 3
+    assert lines[-1].startswith("recovered friction angle: ")
+    s = json.loads((out / "summary.json").read_text())
+    assert s["recovered"]["friction_angle"] == pytest.approx(30.0, abs=0.02)
+    assert s["error_deg"] == pytest.approx(s["recovered"]["friction_angle"] - 30.0)
+    assert s["converged"] and s["particles"] == 64 and s["frames"] == 41
+    assert s["history"][0]["loss"] > 1e3 * s["history"][-1]["loss"]
+    assert (out / "convergence.png").exists() and (out / "deposits.png").exists()
+
+
+def test_invert_with_a_gns_refuses_a_scene_its_model_does_not_support(tmp_path, capsys):
+    scene = tmp_path / "slide.toml"
+    scene.write_text(TINY)
+    rc = main(["invert", str(scene), "--fit", "friction_angle=40:0:90", "--observed-runout",
+               "0.3", "--frames", "40", "--simulator", "gns", "--model", "gns_columns",
+               "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "gns_columns cannot simulate this scene" in err
+    assert "box [0, 0.4] x [0, 0.2] m is not the training box [0, 0.8] x [0, 0.35] m" in err
+    assert "dx = 0.025 m is not the 0.0125 m" in err and "frame_dt = 0.005 s" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_invert_argument_errors_name_the_fix(tmp_path, capsys):
+    scene = tmp_path / "slide.toml"
+    scene.write_text(TINY)
+    base = ["invert", str(scene), "--observed-runout", "0.3", "--out", str(tmp_path / "o")]
+    assert main(base + ["--fit", "friction_angle=40:0:90"]) == 2
+    assert "--observed-runout needs --frames" in capsys.readouterr().err
+    assert main(base + ["--fit", "friction_angle=95:0:90", "--frames", "4"]) == 2
+    assert "must lie strictly inside (0, 90)" in capsys.readouterr().err
+    assert main(base + ["--fit", "obstacle_mu[3]=0.3:0:1", "--frames", "4"]) == 2
+    assert "no obstacle '3'" in capsys.readouterr().err
+    assert main(base + ["--fit", "E=1e6:1e5:1e7", "--frames", "4", "--simulator", "gns",
+                        "--coarse-grain", "2"]) == 2
+    assert "--coarse-grain and --frame-stride are the MPM's" in capsys.readouterr().err
+
+
+def test_parser_lists_every_command_and_the_invert_choices_match_the_library():
+    p = build_parser(["--help"])
+    cmds = set(p._subparsers._group_actions[0].choices)
+    assert cmds == {"simulate", "dataset", "train", "average", "rollout", "hybrid", "invert",
+                    "symbolic"}
+    assert cli_invert.SIMULATORS == job.SIMULATORS and cli_invert.OBJECTIVES == job.OBJECTIVES
+
+
+def test_shipped_obstacle_scene_is_supported_by_the_shipped_8_cell_models():
+    from diffgns.graph.support import UnsupportedSceneError, check_scene
+    from diffgns.inverse.simulators import load_gns
+    from diffgns.scene.files import load_scene
+
+    scene = load_scene(ROOT / "scenes/sand_into_obstacle.toml")
+    assert scene.obstacles and scene.bodies[0].velocity == (1.0, 0.0)
+    for name in ("gns_columns", "gns_small"):
+        assert check_scene(scene, load_gns(name)[2]).factor == 4
+    with pytest.raises(UnsupportedSceneError, match="0.00625 m the model emulates"):
+        check_scene(scene, load_gns("gns_cg16")[2])
