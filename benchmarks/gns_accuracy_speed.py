@@ -23,7 +23,7 @@ import numpy as np
 import protocol
 from timing import interleave, time_call, warm_up_jax
 
-from diffgns import MPM
+from diffgns import MPM, rollout_jit
 from diffgns.graph.data import load_trajectories
 from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
@@ -34,8 +34,8 @@ from diffgns.scene.builders import column_collapse
 def mpm_call(scene, n_frames: int):
     """Zero-argument jitted MPM rollout of ``n_frames`` frames of ``scene``."""
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
-    return lambda: sim.rollout_full(p, s, n_frames=n_frames)[0]
+    p, s = sim.params(), sim.init()
+    return lambda: rollout_jit(sim, p, s, n_frames=n_frames)[0].positions
 
 
 def gns_call(gns, params, ref):

@@ -44,9 +44,9 @@ def step_call(latent: int, mp: int, att: bool, x: np.ndarray, radius: float):
                     mp_steps=mp, attention=att)
     gns = GNS(cfg, Normalizers.identity())
     pt, mat = np.full(len(x), 6, np.int32), np.full(len(x), 0.6, np.float32)
-    params = gns.init(jax.random.PRNGKey(0), (jnp.asarray(hist), pt, mat))
+    params = gns.init_network(jax.random.PRNGKey(0), (jnp.asarray(hist), pt, mat))
     nbrs = gns.allocate(jnp.asarray(x))
-    step = jax.jit(lambda p, hh, nb: gns.step(p, hh, pt, mat, nb)[0])
+    step = jax.jit(lambda p, hh, nb: gns.advance(p, hh, pt, mat, nb)[0])
     n_edges = int(np.asarray(nbrs.idx[0] < len(x)).sum()) + len(x)
     return (lambda: step(params, hist, nbrs)), n_edges
 

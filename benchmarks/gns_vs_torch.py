@@ -21,7 +21,7 @@ layers of ``latent`` with ReLU and a LayerNorm after it except the decoder; iden
 normalisers; semi-implicit Euler in frame units, kinematic particles held.
 
 (a) diffgns: ``GNS(GNSConfig(latent, mp_steps, mlp_layers=2, radius=R, bounds),
-    Normalizers.identity())``.  *step* = jitted ``gns.step`` (jax-md cell-list neighbour
+    Normalizers.identity())``.  *step* = jitted ``gns.advance`` (jax-md cell-list neighbour
     update at the current positions + features + network + Euler), *network* = jitted
     ``gns.acceleration`` on precomputed (capacity-padded) edges.
 (b) torch: ``torch_geometric.nn.MessagePassing(aggr="add")`` interaction networks in the
@@ -276,10 +276,10 @@ def diffgns_gns(latent: int, mp_steps: int, scene, jax, jnp) -> dict:
     gns = GNS(GNSConfig(latent=latent, mp_steps=mp_steps, mlp_layers=MLP_LAYERS,
                         radius=RADIUS, bounds=BOUNDS), Normalizers.identity())
     history, ptype, material = (jnp.asarray(a) for a in scene)
-    params = gns.init(jax.random.PRNGKey(0), (history, ptype, material))
+    params = gns.init_network(jax.random.PRNGKey(0), (history, ptype, material))
     nbrs = gns.allocate(history[:, -1])
     senders, receivers, mask = edges(nbrs, n)
-    step_jit, net_jit = jax.jit(gns.step), jax.jit(gns.acceleration)
+    step_jit, net_jit = jax.jit(gns.advance), jax.jit(gns.acceleration)
     return dict(
         gns=gns, params=params, history=history, ptype=ptype, material=material, nbrs=nbrs,
         senders=senders, receivers=receivers, mask=mask, capacity=capacity(nbrs),

@@ -28,7 +28,7 @@ import numpy as np
 import protocol
 from timing import block, measure, time_call, warm_up_jax
 
-from diffgns import MPM
+from diffgns import MPM, rollout_jit
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.compare import column_scene, model_cells, node_factor, score_against
 from diffgns.hybrid.simulator import Hybrid, Schedule
@@ -54,8 +54,9 @@ SHORT = [(0, 1), (2, 5), (4, 4)]  # (K, M) of the schedules run for the other mo
 def run_mpm(scene, n_frames: int, stride: int, repeats: int):
     """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
-    t, pos = time_call(lambda: sim.rollout_full(p, s, n_frames=n_frames * stride)[0], repeats)
+    p, s = sim.params(), sim.init()
+    t, pos = time_call(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
+                       repeats)
     return np.asarray(pos)[::stride], dict(seconds=t["median_s"], substeps_per_frame=sim.n_sub,
                                            **t)
 

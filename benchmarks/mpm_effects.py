@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import protocol
 from timing import interleave, measure, warm_up_jax
 
-from diffgns.mpm import MPM
+from diffgns import MPM, rollout_jit
 from diffgns.scene import Body, BoxObstacle, Scene, Wall, Walls
 from diffgns.scene.materials import Elastic, Fluid, Sand
 from diffgns.scene.shapes import Rectangle
@@ -64,8 +64,8 @@ def rollout_call(scene: Scene, n_frames: int):
     """Zero-argument call returning the (T, N, 2) positions of a jitted MPM rollout of
     ``scene``. The one place this benchmark calls the simulator."""
     sim = MPM(scene)
-    params, state = sim.params(), sim.init_state()
-    return lambda: sim.rollout_full(params, state, n_frames=n_frames)[0]
+    params, state = sim.params(), sim.init()
+    return lambda: rollout_jit(sim, params, state, n_frames=n_frames)[0].positions
 
 
 def plot(rows: dict, path):

@@ -5,9 +5,10 @@ checkpointing.
         [--block 25] [--repeats 3] [--budget-s 600] [--mem-limit-gb 4] [--note TEXT]
 
 Scene: ``column_collapse(width=0.1, aspect_ratio=2.0, friction_angle=30.0, cells_across=8)``
-(512 sand particles, float32). Loss: ``runout(pos[-1], method="softmax")`` of the last frame of
-``MPM.rollout_full(params, state, n_frames=n, checkpoint=c, block=b)``; the gradient is
-``jax.grad`` of that loss with respect to the whole ``MPMParams`` pytree.
+(512 sand particles, float32). Loss: ``runout(positions[-1], method="softmax")`` of the last
+frame of ``diffgns.rollout(MPM(scene, checkpoint_substeps=c), params, state, n,
+checkpoint_block=b)``; the gradient is ``jax.grad`` of that loss with respect to the whole
+``MPMParams`` pytree.
 
 For every n_frames and checkpoint in {False, True (block frames per checkpointed block)}:
 
@@ -58,18 +59,18 @@ def log(msg: str) -> None:
 def loss_fn(n_frames: int, ckpt: bool, block: int | None):
     """(scene, loss(params, state) = soft runout of the last frame, params, state). The one
     place this benchmark calls the simulator."""
+    from diffgns import MPM, rollout
     from diffgns.metrics import runout
-    from diffgns.mpm import MPM
     from diffgns.scene.builders import column_collapse
 
     scene = column_collapse(**SCENE_KW)
-    sim = MPM(scene, dtype="float32")
+    sim = MPM(scene, dtype="float32", checkpoint_substeps=ckpt)
 
     def loss(p, s):
-        pos = sim.rollout_full(p, s, n_frames=n_frames, checkpoint=ckpt, block=block)[0]
-        return runout(pos[-1], method="softmax")
+        frames = rollout(sim, p, s, n_frames, checkpoint_block=block)[0]
+        return runout(frames.positions[-1], method="softmax")
 
-    return scene, loss, sim.params(), sim.init_state()
+    return scene, loss, sim.params(), sim.init()
 
 
 def run_case(n_frames: int, ckpt: bool, block: int, deadline: float, repeats: int,

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import protocol
 from timing import fmt_rate, measure, time_call, warm_up_jax
 
-from diffgns.mpm import MPM
+from diffgns import MPM, rollout_jit
 from diffgns.scene.builders import column_collapse
 
 # (cells across the column, frames per timed call); 4 particles per cell -> N = 4 c^2
@@ -33,8 +33,8 @@ def rollout_call(cells: int, n_frames: int):
     The one place this benchmark calls the simulator."""
     scene = column_collapse(cells_across=cells, frame_dt=BASE_FRAME_DT * BASE_CELLS / cells)
     sim = MPM(scene)
-    params, state = sim.params(), sim.init_state()
-    return scene, lambda: sim.rollout_full(params, state, n_frames=n_frames)[0]
+    params, state = sim.params(), sim.init()
+    return scene, lambda: rollout_jit(sim, params, state, n_frames=n_frames)[0].positions
 
 
 def measure_size(cells: int, n_frames: int, repeats: int) -> dict:

@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 import protocol  # noqa: E402
 from timing import measure, no_sync  # noqa: E402
 
-from diffgns import MPM  # noqa: E402
+from diffgns import MPM, rollout  # noqa: E402
 from diffgns.metrics import runout  # noqa: E402
 from diffgns.scene.builders import column_collapse  # noqa: E402
 
@@ -32,11 +32,11 @@ def final_positions_fn(n_frames: int):
     benchmark calls the simulator."""
     scene = column_collapse(width=0.1, aspect_ratio=1.0, cells_across=6)
     sim = MPM(scene, dtype="float64")
-    base, state = sim.params(), sim.init_state()
+    base, state = sim.params(), sim.init()
 
     def final(phi):
         p = base.replace(friction_angle=jnp.reshape(phi, (1,)))
-        return sim.rollout_full(p, state, n_frames=n_frames, checkpoint=True, block=25)[0][-1]
+        return rollout(sim, p, state, n_frames, checkpoint_block=25)[0].positions[-1]
 
     return scene, final
 

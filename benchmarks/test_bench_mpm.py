@@ -1,9 +1,10 @@
 """pytest-benchmark micro-benchmarks of the MPM solver (small sizes).
 
-    PYTHONPATH=src .venv/bin/python -m pytest benchmarks/ --benchmark-enable
+    .venv/bin/python -m pytest benchmarks/ --benchmark-enable [--allow-loaded]
 
 Not part of the default test run (``testpaths = ["tests"]``). Compilation happens in the
-fixtures, outside the timed region; every timed call blocks until its result is ready.
+fixtures, outside the timed region; every timed call blocks until its result is ready. The
+load check of ``protocol.py`` applies (``conftest.py``).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.mpm import MPM
+from diffgns import MPM, rollout_jit
 from diffgns.scene import Body, Scene, Walls
 from diffgns.scene.builders import column_collapse
 from diffgns.scene.materials import Fluid
@@ -23,8 +24,9 @@ ROUNDS = 5
 
 def _compiled_frame(scene, n_frames=1):
     sim = MPM(scene)
-    params, state = sim.params(), sim.init_state()
-    fn = lambda: jax.block_until_ready(sim.rollout_full(params, state, n_frames=n_frames))
+    params, state = sim.params(), sim.init()
+    fn = lambda: jax.block_until_ready(
+        rollout_jit(sim, params, state, n_frames=n_frames)[0].positions)
     fn()  # compile
     return fn, scene
 
@@ -47,7 +49,7 @@ def _bench_frame(benchmark, compiled):
     fn, scene = compiled
     benchmark.extra_info.update(n_particles=scene.n_particles, substeps=scene.substeps,
                                 grid_shape=list(scene.grid_shape))
-    pos, _, _, _ = benchmark.pedantic(fn, rounds=ROUNDS, iterations=1, warmup_rounds=1)
+    pos = benchmark.pedantic(fn, rounds=ROUNDS, iterations=1, warmup_rounds=1)
     assert bool(jnp.all(jnp.isfinite(pos)))
     return pos
 
