@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.graph.features import Normalizers
+from diffgns.graph.features import ParticleStats
 from diffgns.graph.gns import GNS, GNSConfig, GNSParams
 from diffgns.graph.neighbors import did_overflow, edges
 from diffgns.interface import NeighborOverflowError, rollout, rollout_safe
@@ -31,7 +31,7 @@ def sim():
     # test_graph_networks; compile time dominates here.
     cfg = GNSConfig(bounds=((0.0, 1.0), (0.0, 1.0)), radius=0.1, latent=16, mp_steps=1,
                     mlp_layers=1, history=C)
-    gns = GNS(cfg, Normalizers.from_metadata(META, cfg.noise_std))
+    gns = GNS(cfg, ParticleStats.from_metadata(META, cfg.noise_std))
     # Inputs stay numpy: jitted calls take them as they are, test-side maths is numpy, and
     # no eager JAX op (each compiled on first use) is needed.
     hist = _history()

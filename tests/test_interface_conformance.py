@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.graph.features import Normalizer, Normalizers
+from diffgns.graph.features import Normalizer, ParticleStats
 from diffgns.graph.gns import GNS, GNSConfig, GNSParams
 from diffgns.hybrid import Hybrid, HybridParams, Schedule
 from diffgns.interface import Simulator, rollout, rollout_jit, scan_frames
@@ -47,7 +47,7 @@ def _scene():
 def _gns(bounds, history=2):
     cfg = GNSConfig(bounds=bounds, radius=0.06, latent=8, mp_steps=1, mlp_layers=1,
                     history=history)
-    return GNS(cfg, Normalizers.from_metadata(META, cfg.noise_std), frame_dt=2.5e-3)
+    return GNS(cfg, ParticleStats.from_metadata(META, cfg.noise_std), frame_dt=2.5e-3)
 
 
 def make_mpm(dtype):

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgns.graph.features import Normalizers
+from diffgns.graph.features import ParticleStats
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.inverse import objectives
 from diffgns.inverse.simulators import (
@@ -36,7 +36,7 @@ def _column_history(dtype):
 def _sim(checkpoint_block, dtype, **kw):
     cfg = GNSConfig(bounds=((0.0, 0.3), (0.0, 0.2)), radius=0.032, latent=16, mp_steps=2,
                     mlp_layers=1, history=C)
-    gns = GNS(cfg, Normalizers.from_metadata(META, 0.0))
+    gns = GNS(cfg, ParticleStats.from_metadata(META, 0.0))
     hist = _column_history(dtype)
     ptype = np.full(hist.shape[1], 6, np.int32)
     params = gns.init_network(jax.random.key(1), (np.swapaxes(hist, 0, 1), ptype,
@@ -64,7 +64,7 @@ def test_gns_runout_gradient_matches_finite_differences(x64):
     fd = (fwd(jnp.float64(phi + h)) - fwd(jnp.float64(phi - h))) / (2 * h)
     assert float(val) > 0 and abs(float(fd)) > 0
     assert float(g) == pytest.approx(float(fd), rel=1e-5)
-    overflow = jax.jit(lambda p: sim.rollout({"friction_angle": p})[1],
+    overflow = jax.jit(lambda p: sim.simulate({"friction_angle": p})[1],
                        compiler_options=FAST)(jnp.float64(phi))
     assert not bool(overflow)
 
@@ -95,16 +95,16 @@ def test_overflow_is_reported_and_reallocation_grows_the_state_list():
     tight = _sim(checkpoint_block=None, dtype=np.float32, extra_capacity=0)
     tight.state = tight.state._replace(
         nbrs=tight.gns.neighbors.allocate(tight.state.history[:, -1] * 2.7))  # no pairs
-    run = jax.jit(lambda phi: tight.rollout({"friction_angle": phi}))
+    run = jax.jit(lambda phi: tight.simulate({"friction_angle": phi}))
     _, overflow = run(jnp.float32(35.0))
     assert bool(overflow)
     cap = tight.state.nbrs.idx.shape
     tight.reallocate({"friction_angle": 35.0})
     assert tight.state.nbrs.idx.shape[1] > cap[1]
-    pos, overflow = jax.jit(lambda phi: tight.rollout({"friction_angle": phi}))(
+    pos, overflow = jax.jit(lambda phi: tight.simulate({"friction_angle": phi}))(
         jnp.float32(35.0))
     ref = _sim(checkpoint_block=None, dtype=np.float32, extra_capacity=8)
-    ref_pos, ref_overflow = jax.jit(lambda phi: ref.rollout({"friction_angle": phi}))(
+    ref_pos, ref_overflow = jax.jit(lambda phi: ref.simulate({"friction_angle": phi}))(
         jnp.float32(35.0))
     assert not bool(overflow) and not bool(ref_overflow)
     np.testing.assert_allclose(np.asarray(pos), np.asarray(ref_pos), atol=1e-6)
@@ -131,6 +131,6 @@ def test_column_observation_operator_and_model_checks(tmp_path):
     with pytest.raises(FileNotFoundError, match="no GNS model"):
         load_gns(tmp_path)  # a folder without config.json
     hyb = hybrid_simulator(col, loaded=loaded)  # the hybrid hook: same observation operator
-    assert hyb.n_frames == col.n_obs - 1 and callable(hyb.rollout)
+    assert hyb.n_frames == col.n_obs - 1 and callable(hyb.simulate)
     with pytest.raises(ValueError, match="frame_stride"):
         hybrid_simulator(Column(ColumnCase(aspect_ratio=1.0, frame_stride=1)), loaded=loaded)

@@ -1,7 +1,7 @@
 """Learned simulators on graphs: neighbour lists, features, networks and the particle GNS."""
 from diffgns.graph.features import (
     Normalizer,
-    Normalizers,
+    ParticleStats,
     edge_features,
     node_features,
     random_walk_noise,
@@ -13,6 +13,6 @@ from diffgns.graph.networks import MLP, EncodeProcessDecode, init_params
 
 __all__ = [
     "GNS", "GNSConfig", "GNSParams", "GNSState", "MLP", "EncodeProcessDecode", "NeighborBuilder",
-    "Normalizer", "Normalizers", "did_overflow", "edge_features", "edges", "init_params",
+    "Normalizer", "ParticleStats", "did_overflow", "edge_features", "edges", "init_params",
     "node_features", "random_walk_noise", "target_acceleration",
 ]

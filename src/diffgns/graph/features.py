@@ -33,7 +33,7 @@ from flax import struct
 from diffgns.trajectory import KINEMATIC
 
 __all__ = [
-    "Normalizer", "Normalizers", "ParticleStats", "combine_std", "edge_features",
+    "Normalizer", "ParticleStats", "combine_std", "edge_features",
     "node_features", "n_node_features", "random_walk_noise", "target_acceleration",
     "velocities", "wall_distances",
 ]
@@ -111,9 +111,6 @@ class ParticleStats:
         return cls(Normalizer.identity(dim), Normalizer.identity(dim))
 
 
-#: former name of :class:`ParticleStats`, kept until its last users (graph/gns.py,
-#: graph/__init__.py, tests/test_graph_gns.py, tests/test_inverse_gns.py, benchmarks) switch
-Normalizers = ParticleStats
 
 
 def velocities(history: jax.Array) -> jax.Array:

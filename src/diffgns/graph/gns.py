@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns.graph.features import Normalizers, edge_features, node_features
+from diffgns.graph.features import ParticleStats, edge_features, node_features
 from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
 from diffgns.graph.networks import EncodeProcessDecode, init_params
 from diffgns.interface import ParticleFrame
@@ -129,12 +129,12 @@ class GNS:
 
     Args:
         config: :class:`GNSConfig`.
-        normalizer: :class:`~diffgns.graph.features.Normalizers` (velocity m/frame,
-            acceleration m/frame^2), usually ``Normalizers.from_metadata(meta, noise_std)``.
+        normalizer: :class:`~diffgns.graph.features.ParticleStats` (velocity m/frame,
+            acceleration m/frame^2), usually ``ParticleStats.from_metadata(meta, noise_std)``.
         frame_dt: seconds per GNS frame (for the velocities it observes, m/s).
     """
 
-    def __init__(self, config: GNSConfig, normalizer: Normalizers, frame_dt: float = 2.5e-3):
+    def __init__(self, config: GNSConfig, normalizer: ParticleStats, frame_dt: float = 2.5e-3):
         self.config = config
         self.frame_dt = float(frame_dt)
         self.normalizer = normalizer

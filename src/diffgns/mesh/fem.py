@@ -60,7 +60,7 @@ class Convection:
         rows = np.broadcast_to(np.arange(n_t * n_q).reshape(1, n_t, n_q), (nb, n_t, n_q))
         cols = np.broadcast_to(basis.element_dofs[:, :, None], (nb, n_t, n_q))
 
-        def interp(vals):  # (nb, T, q) -> sparse (T q, n_u)
+        def interp(vals):  # (nb, C, q) -> sparse (C q, n_u), C triangles
             return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())),
                                  shape=(n_t * n_q, basis.N))
 

@@ -15,15 +15,15 @@ from matplotlib.tri import Triangulation  # noqa: E402
 def vorticity(mesh_pos: np.ndarray, cells: np.ndarray, velocity: np.ndarray) -> np.ndarray:
     """Per-triangle vorticity dv/dx - du/dy (1/s) of P1 velocities.
 
-    mesh_pos (N, 2) m, cells (T, 3), velocity (..., N, 2) m/s -> (..., T).
+    mesh_pos (N, 2) m, cells (C, 3) (C triangles), velocity (..., N, 2) m/s -> (..., C).
     """
-    x = mesh_pos[cells]                                   # (T, 3, 2)
+    x = mesh_pos[cells]                                   # (C, 3, 2)
     d1, d2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
     det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
     # gradients of the barycentric functions of vertices 1 and 2 (vertex 0: minus their sum)
     g1 = np.stack([d2[:, 1], -d2[:, 0]], -1) / det[:, None]
     g2 = np.stack([-d1[:, 1], d1[:, 0]], -1) / det[:, None]
-    v = velocity[..., cells, :]                           # (..., T, 3, 2)
+    v = velocity[..., cells, :]                           # (..., C, 3, 2)
     dv1, dv2 = v[..., 1, :] - v[..., 0, :], v[..., 2, :] - v[..., 0, :]
     grad = dv1[..., :, None] * g1[:, None, :] + dv2[..., :, None] * g2[:, None, :]
     return grad[..., 1, 0] - grad[..., 0, 1]
@@ -32,7 +32,7 @@ def vorticity(mesh_pos: np.ndarray, cells: np.ndarray, velocity: np.ndarray) -> 
 def animate_vorticity(mesh_pos, cells, omega_a, omega_b, path: str | Path,
                       titles=("CFD", "MeshGraphNet"), frame_dt: float = 0.01, every: int = 2,
                       fps: int = 15, vmax: float | None = None) -> Path:
-    """GIF of two per-triangle vorticity histories (F, T) on one mesh, one above the other."""
+    """GIF of two per-triangle vorticity histories (T frames, C triangles) on one mesh, one above the other."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tri = Triangulation(mesh_pos[:, 0], mesh_pos[:, 1], cells)

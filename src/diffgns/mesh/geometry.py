@@ -97,7 +97,7 @@ class ChannelMesh:
 
     Attributes:
         nodes: (N, 2) float64 vertex coordinates, m.
-        cells: (T, 3) int32 vertex indices, counter-clockwise.
+        cells: (C, 3) int32 vertex indices of the C triangles, counter-clockwise.
         node_type: (N,) int32 codes FLUID/WALL/INFLOW/OUTFLOW (module docstring).
         on_cylinder: (N,) bool, the WALL nodes on the cylinder surface.
         geometry: the :class:`ChannelGeometry` meshed.
@@ -116,7 +116,7 @@ class ChannelMesh:
         return int(self.nodes.shape[0])
 
     def cell_areas(self) -> np.ndarray:
-        """(T,) triangle areas, m^2."""
+        """(C,) triangle areas, m^2."""
         return _areas(self.nodes, self.cells)
 
     def edges(self) -> np.ndarray:

@@ -95,11 +95,11 @@ class MeshGraph:
 def mesh_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Directed edges (senders, receivers) of a triangle mesh: each side once per direction.
 
-    cells (T, 3) int -> two (E,) int32 arrays, E = 2 x number of distinct sides.
+    cells (C, 3) int (C triangles) -> two (E,) int32 arrays, E = 2 x number of distinct sides.
     """
     cells = np.asarray(cells)
     if cells.ndim != 2 or cells.shape[1] != 3:
-        raise ValueError(f"cells must be (T, 3), got {cells.shape}")
+        raise ValueError(f"cells must be (n_cells, 3), got {cells.shape}")
     sides = np.concatenate([cells[:, [0, 1]], cells[:, [1, 2]], cells[:, [2, 0]]])
     sides = np.unique(np.sort(sides, axis=1), axis=0)
     s = np.concatenate([sides[:, 0], sides[:, 1]]).astype(np.int32)

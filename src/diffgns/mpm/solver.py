@@ -24,7 +24,7 @@ from diffgns.mpm import linalg as la
 from diffgns.mpm.shape import stencil
 from diffgns.mpm.state import MPMParams, MPMState
 from diffgns.mpm.transfer import g2p, grid_velocity, p2g
-from diffgns.scene.materials import Fluid, Sand
+from diffgns.scene.materials import Fluid, Sand, friction_feature
 from diffgns.trajectory import ELASTIC, FLUID, SAND, Trajectory
 
 
@@ -75,7 +75,7 @@ class MPM:
     def material_feature(self, params: MPMParams) -> jax.Array:
         """(N,) tan(friction angle) for sand particles, 0 otherwise."""
         is_sand = np.array([isinstance(b.material, Sand) for b in self.scene.bodies])[self.body]
-        tan = jnp.tan(jnp.deg2rad(params.friction_angle))[self.body]
+        tan = friction_feature(params.friction_angle)[self.body]
         return jnp.where(is_sand, tan, 0.0)
 
     # ------------------------------------------------------------------ physics
