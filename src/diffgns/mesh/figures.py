@@ -32,7 +32,8 @@ def vorticity(mesh_pos: np.ndarray, cells: np.ndarray, velocity: np.ndarray) -> 
 def animate_vorticity(mesh_pos, cells, omega_a, omega_b, path: str | Path,
                       titles=("CFD", "MeshGraphNet"), frame_dt: float = 0.01, every: int = 2,
                       fps: int = 15, vmax: float | None = None) -> Path:
-    """GIF of two per-triangle vorticity histories (T frames, C triangles) on one mesh, one above the other."""
+    """GIF of two per-triangle vorticity histories (T frames, C triangles) on one mesh, one
+    above the other."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tri = Triangulation(mesh_pos[:, 0], mesh_pos[:, 1], cells)
