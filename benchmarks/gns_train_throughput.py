@@ -36,10 +36,9 @@ def train_step_call(data: str, batch: int):
     b = sampler.sample(np.random.default_rng(0), batch)
     tr = Trainer(gns, TrainConfig(batch_size=batch))
     C = 5
-    p = gns.init(jax.random.PRNGKey(0), (jnp.swapaxes(jnp.asarray(b["positions"][0, :C + 1]),
-                                                      0, 1),
-                                         jnp.asarray(b["particle_type"][0]),
-                                         jnp.asarray(b["material"][0])))
+    history = jnp.swapaxes(jnp.asarray(b["positions"][0, :C + 1]), 0, 1)
+    p = gns.init_network(jax.random.PRNGKey(0), (history, jnp.asarray(b["particle_type"][0]),
+                                                 jnp.asarray(b["material"][0])))
     o = tr.opt.init(p)
     nb = gns.allocate(jnp.asarray(b["positions"][0, C]), extra_capacity=4)
     key = jax.random.PRNGKey(0)
