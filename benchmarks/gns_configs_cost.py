@@ -21,7 +21,7 @@ import numpy as np
 import protocol
 from timing import interleave, warm_up_jax
 
-from diffgns.graph.features import Normalizers
+from diffgns.graph.features import ParticleStats
 from diffgns.graph.gns import GNS, GNSConfig
 
 CONFIGS = [  # (latent, mp_steps, attention, coarse-grain factor)
@@ -42,7 +42,7 @@ def step_call(latent: int, mp: int, att: bool, x: np.ndarray, radius: float):
     hist = np.repeat(x[:, None], 6, 1)
     cfg = GNSConfig(bounds=((0.0, 1.0), (0.0, 1.0)), radius=radius, latent=latent,
                     mp_steps=mp, attention=att)
-    gns = GNS(cfg, Normalizers.identity())
+    gns = GNS(cfg, ParticleStats.identity())
     pt, mat = np.full(len(x), 6, np.int32), np.full(len(x), 0.6, np.float32)
     params = gns.init_network(jax.random.PRNGKey(0), (jnp.asarray(hist), pt, mat))
     nbrs = gns.allocate(jnp.asarray(x))

@@ -21,7 +21,7 @@ layers of ``latent`` with ReLU and a LayerNorm after it except the decoder; iden
 normalisers; semi-implicit Euler in frame units, kinematic particles held.
 
 (a) diffgns: ``GNS(GNSConfig(latent, mp_steps, mlp_layers=2, radius=R, bounds),
-    Normalizers.identity())``.  *step* = jitted ``gns.advance`` (jax-md cell-list neighbour
+    ParticleStats.identity())``.  *step* = jitted ``gns.advance`` (jax-md cell-list neighbour
     update at the current positions + features + network + Euler), *network* = jitted
     ``gns.acceleration`` on precomputed (capacity-padded) edges.
 (b) torch: ``torch_geometric.nn.MessagePassing(aggr="add")`` interaction networks in the
@@ -268,13 +268,13 @@ def diffgns_gns(latent: int, mp_steps: int, scene, jax, jnp) -> dict:
     """The diffgns side: GNS, parameters, neighbour list, edges and the two jitted calls
     (*step*: neighbour update + features + network + Euler; *network*: features + network
     on precomputed edges). The one place this benchmark calls the simulator's API."""
-    from diffgns.graph.features import Normalizers
+    from diffgns.graph.features import ParticleStats
     from diffgns.graph.gns import GNS, GNSConfig
     from diffgns.graph.neighbors import capacity, did_overflow, edges
 
     n = scene[0].shape[0]
     gns = GNS(GNSConfig(latent=latent, mp_steps=mp_steps, mlp_layers=MLP_LAYERS,
-                        radius=RADIUS, bounds=BOUNDS), Normalizers.identity())
+                        radius=RADIUS, bounds=BOUNDS), ParticleStats.identity())
     history, ptype, material = (jnp.asarray(a) for a in scene)
     params = gns.init_network(jax.random.PRNGKey(0), (history, ptype, material))
     nbrs = gns.allocate(history[:, -1])
