@@ -27,6 +27,7 @@ from diffgns import MPM, rollout_jit
 from diffgns.graph.data import load_trajectories
 from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
+from diffgns.interface import rollout_safe
 from diffgns.scene.builders import column_collapse
 
 
@@ -41,9 +42,9 @@ def mpm_call(scene, n_frames: int):
 def gns_call(gns, params, ref):
     """Zero-argument GNS rollout from the first frames of ``ref`` (compiled, with the
     neighbour list that a first call sized)."""
-    hist, ptype, mat, n_steps = reference_inputs(gns, ref)
-    _, nbrs = gns.rollout_safe(params, hist, ptype, mat, n_steps)
-    return lambda: gns.rollout_safe(params, hist, ptype, mat, n_steps, nbrs)[0]
+    p, state, n_steps = reference_inputs(gns, params, ref)
+    _, _, start = rollout_safe(gns, p, state, n_steps)  # sizes the neighbour list
+    return lambda: rollout_jit(gns, p, start, n_frames=n_steps)[0].positions
 
 
 def gns_prediction(gns, params, ref):

@@ -28,11 +28,12 @@ from diffgns.graph.evaluate import reference_inputs
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import NeighborBuilder
 from diffgns.graph.train_loop import load_model
+from diffgns.interface import rollout_jit, rollout_safe
 
 
 def _variant(gns: GNS, multiplier: float, cell_list: bool) -> GNS:
     cfg = dataclasses.replace(gns.config, capacity_multiplier=multiplier)
-    g = GNS(cfg, gns.normalizer)
+    g = GNS(cfg, gns.normalizer, gns.frame_dt)
     # swap the builder before the first (tracing) call; the jitted rollout reads it then
     g.neighbors = NeighborBuilder(cfg.bounds, cfg.radius, multiplier,
                                   all_pairs_max=0 if cell_list else 10**9)
@@ -42,11 +43,12 @@ def _variant(gns: GNS, multiplier: float, cell_list: bool) -> GNS:
 def rollout_call(gns: GNS, params, ref, multiplier: float, cell_list: bool):
     """(zero-argument compiled rollout with a sized neighbour list, edge capacity, positions
     of the sizing run). The one place this benchmark calls the simulator."""
-    hist, pt, mat, n_steps = reference_inputs(gns, ref)
     g = _variant(gns, multiplier, cell_list)
-    xs, nbrs = g.rollout_safe(params, hist, pt, mat, n_steps)
-    call = lambda: g.rollout_safe(params, hist, pt, mat, n_steps, nbrs)[0]
-    return call, int(nbrs.idx.shape[1]), np.asarray(xs), int(hist.shape[0]), int(n_steps)
+    p, state, n_steps = reference_inputs(g, params, ref)
+    frames, _, start = rollout_safe(g, p, state, n_steps)  # sizes the neighbour list
+    call = lambda: rollout_jit(g, p, start, n_frames=n_steps)[0].positions  # noqa: E731
+    xs = np.asarray(frames.positions[1:])
+    return call, int(start.nbrs.idx.shape[1]), xs, int(xs.shape[1]), int(n_steps)
 
 
 def measure_case(gns, params, ref, settings, names, rounds: int) -> dict:

@@ -31,7 +31,7 @@ from timing import block, measure, time_call, warm_up_jax
 from diffgns import MPM, rollout_jit
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.compare import column_scene, model_cells, node_factor, score_against
-from diffgns.hybrid.simulator import Hybrid, Schedule
+from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
 
 CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
 
@@ -65,12 +65,14 @@ def run_hybrid(scene, gns, gp, info: dict, schedule: Schedule, n_frames: int, re
     """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames; the
     first call (compile + neighbour-list sizing) is timed apart."""
     sim = MPM(scene)
-    p, s = sim.params(), sim.init_state()
-    hyb = Hybrid(sim, gns, gp, info.get("frame_stride", 1), node_factor(info, model_cells(info)),
+    s = sim.init()
+    hyb = Hybrid(sim, gns, info.get("frame_stride", 1), node_factor(info, model_cells(info)),
                  schedule)
+    p = HybridParams(sim.params(), gp)
     sync = lambda r: block((r.positions, r.nodes, r.mode))  # noqa: E731
-    first, (_, nbrs) = measure(lambda: hyb.run(p, s, n_frames), sync=lambda r: sync(r[0]))
-    t, res = time_call(lambda: hyb.run(p, s, n_frames, nbrs)[0], repeats, sync=sync, first=first)
+    first, (_, start) = measure(lambda: hyb.run(p, s, n_frames), sync=lambda r: sync(r[0]))
+    t, res = time_call(lambda: hyb.run(p, s, n_frames, state=start)[0], repeats, sync=sync,
+                       first=first)
     return res, dict(seconds=t["median_s"], mpm_fraction=res.mpm_fraction, **t)
 
 
@@ -102,15 +104,17 @@ def main(argv=None):
     warm_up_jax()
     cases = CASES[1:2] if args.quick else CASES
     models = {Path(m).name: load_model(m) for m in args.models if Path(m).exists()}
-    stride = next(iter(models.values()))[2].get("frame_stride", 1)
+    info0 = next(iter(models.values()))[2]  # all models share the training box
+    stride = info0.get("frame_stride", 1)
     rows = []
     for a, phi in cases:
-        ref, t_ref = run_mpm(column_scene(a, phi, args.reference_cells), args.frames, stride, 1)
+        ref, t_ref = run_mpm(column_scene(a, phi, args.reference_cells, info0), args.frames,
+                             stride, 1)
         rows.append(dict(case=[a, phi], family="reference", label=f"MPM {args.reference_cells}"
                          f" cells (reference)", **score_against(ref, ref), **t_ref))
         same_res = {}
         for cells in args.mpm_cells:
-            x, t = run_mpm(column_scene(a, phi, cells), args.frames, stride, args.repeats)
+            x, t = run_mpm(column_scene(a, phi, cells, info0), args.frames, stride, args.repeats)
             same_res[cells] = x
             rows.append(dict(case=[a, phi], family="MPM", label=f"MPM {cells} cells",
                              **score_against(x, ref), **t))
@@ -122,7 +126,7 @@ def main(argv=None):
             run.print(r["label"], a, phi, f"{r['mean_position_error_m']:.2e}",
                       f"{r['seconds']:.3f}s")
         for name, (gns, gp, info) in models.items():
-            scene = column_scene(a, phi, model_cells(info))
+            scene = column_scene(a, phi, model_cells(info), info)
             for sched in schedules(args.quick):
                 first = name == Path(args.models[0]).name
                 if not first and (sched.handoff != "carry" or sched.adaptive_tol
