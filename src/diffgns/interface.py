@@ -37,6 +37,7 @@ __all__ = [
 ]
 
 P = TypeVar("P")
+P_contra = TypeVar("P_contra", contravariant=True)
 S = TypeVar("S")
 F_co = TypeVar("F_co", covariant=True)
 Carry = TypeVar("Carry")
@@ -44,7 +45,7 @@ R = TypeVar("R")
 
 
 @runtime_checkable
-class Simulator(Protocol, Generic[P, S, F_co]):
+class Simulator(Protocol, Generic[P_contra, S, F_co]):
     """What every simulator provides (besides its own ``init``, which allocates).
 
     Attributes:
@@ -53,7 +54,7 @@ class Simulator(Protocol, Generic[P, S, F_co]):
 
     frame_dt: float
 
-    def step(self, params: P, state: S) -> S:
+    def step(self, params: P_contra, state: S) -> S:
         """Advance ``state`` by one frame (pure)."""
         ...
 
@@ -138,7 +139,7 @@ def rollout(sim: Simulator[P, S, Any], params: P, state: S, n_frames: int, *,
     if int(n_frames) < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
 
-    def body(s, _):
+    def body(s: S, _: None) -> tuple[S, Any]:
         s = sim.step(params, s)
         return s, sim.observe(s)
 
@@ -159,7 +160,7 @@ def overflow_flags(frames: Any) -> np.ndarray:
     if flag is None:
         leaves = jax.tree.leaves(frames)
         return np.zeros(leaves[0].shape[0] if leaves else 0, bool)
-    return np.asarray(flag, bool).reshape(np.shape(flag)[0], -1).any(axis=1)
+    return np.asarray(np.asarray(flag, bool).reshape(np.shape(flag)[0], -1).any(axis=1))
 
 
 def retry_on_overflow(run: Callable[[S], R], state: S, overflowed: Callable[[R], bool],
@@ -202,7 +203,7 @@ def rollout_safe(sim: Any, params: Any, state: Any, n_frames: int, *,
     run = partial(rollout_jit, sim, params, n_frames=int(n_frames),
                   checkpoint_block=checkpoint_block)
 
-    def realloc(s, out, attempt):
+    def realloc(s: Any, out: Any, attempt: int) -> Any:
         k = int(np.argmax(overflow_flags(out[0])))
         return sim.reallocate(s, out[0], k, attempt)
 
