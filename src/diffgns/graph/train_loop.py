@@ -23,6 +23,7 @@ from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.training import Trainer, step_with_reallocation
+from diffgns.models import model_path
 
 
 def save_model(out: Path, gns: GNS, params, info: dict) -> None:
@@ -40,8 +41,9 @@ def save_model(out: Path, gns: GNS, params, info: dict) -> None:
 
 
 def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
-    """(GNS, params, info) from a model folder written by :func:`save_model`."""
-    path = Path(path)
+    """(GNS, params, info) from a model folder written by :func:`save_model`, or a
+    shipped model's name (:func:`diffgns.models.model_path`)."""
+    path = model_path(path)  # a folder, or the name of a shipped model
     info = json.loads((path / "config.json").read_text())
     g = dict(info["gns"])
     g["bounds"] = tuple(tuple(b) for b in g["bounds"])

@@ -29,6 +29,7 @@ from flax import serialization, struct
 from diffgns.graph.features import Normalizer
 from diffgns.graph.fit import TrainConfig, fit, make_optimizer, step_rng
 from diffgns.graph.networks import MLP
+from diffgns.models import model_path
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,8 +149,9 @@ def save(out: Path, cfg: MessageNetConfig, norm: MessageStats, params, info: dic
 
 
 def load(path: str | Path):
-    """Read a model folder written by :func:`save`: (net, norm, params, info)."""
-    path = Path(path)
+    """Read a model folder written by :func:`save` (or a shipped model's name):
+    (net, norm, params, info)."""
+    path = model_path(path)  # a folder, or the name of a shipped model
     meta = json.loads((path / "model.json").read_text())
     cfg = MessageNetConfig(**meta.pop("net"))
     norm = MessageStats.from_dict(meta.pop("normaliser"))

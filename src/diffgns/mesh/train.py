@@ -38,6 +38,7 @@ from diffgns.mesh.meshnet import (
     mesh_edges,
     pad_mesh,
 )
+from diffgns.models import model_path
 
 
 def load_cylinder(path: str | Path) -> list[dict]:
@@ -131,8 +132,9 @@ def save_model(out: Path, model: MeshNet, params, padding, info: dict) -> None:
 
 
 def load_model(path: str | Path):
-    """(model, params, info) from a folder written by :func:`save_model`."""
-    path = Path(path)
+    """(model, params, info) from a folder written by :func:`save_model`, or a
+    shipped model's name (:func:`diffgns.models.model_path`)."""
+    path = model_path(path)  # a folder, or the name of a shipped model
     info = json.loads((path / "model.json").read_text())
     s = info["stats"]
     f = jnp.result_type(float)
@@ -144,7 +146,8 @@ def load_model(path: str | Path):
                                  jnp.asarray(s["velocity_std"], f)),
                       Normalizer(jnp.asarray(s["target_mean"], f),
                                  jnp.asarray(s["target_std"], f)), float(s["edge_scale"]), nu)
-    model = MeshNet(MeshNetConfig(**{"viscosity_feature": False, **info["config"]}), stats)
+    model = MeshNet(MeshNetConfig(**{"viscosity_feature": False, **info["config"]}), stats,
+                    frame_dt=float(info.get("frame_dt", 0.01)))
     n, e = info["padding"]
     dummy = MeshGraph(jnp.zeros((n, 2)), jnp.zeros(n, jnp.int32), jnp.zeros(e, jnp.int32),
                       jnp.zeros(e, jnp.int32), jnp.zeros(e, bool), jnp.ones(()))
