@@ -60,23 +60,28 @@ docs: $(VENV)/.installed-docs
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow
 
+# speed figures follow benchmarks/protocol.py: each script waits up to BENCH_WAIT s for a
+# quiet machine (1-minute load <= 1) and refuses (exit 3) otherwise
+BENCH_WAIT ?= 300
+BENCH = --wait-quiet $(BENCH_WAIT)
+
 bench: $(VENV)/.installed-bench $(VENV)/.installed-test
-	$(PY) benchmarks/mpm_throughput.py
-	$(PY) benchmarks/mpm_vs_taichi.py
-	$(PY) benchmarks/mpm_effects.py
-	$(PY) benchmarks/mpm_grad_memory.py
+	$(PY) benchmarks/mpm_throughput.py $(BENCH)
+	$(PY) benchmarks/mpm_vs_taichi.py $(BENCH)
+	$(PY) benchmarks/mpm_effects.py $(BENCH)
+	$(PY) benchmarks/mpm_grad_memory.py $(BENCH)
 	$(PY) benchmarks/runout_gradients.py
-	$(PY) benchmarks/gns_vs_torch.py
-	$(PY) benchmarks/gns_configs_cost.py
+	$(PY) benchmarks/gns_vs_torch.py --sides 22 32 45 $(BENCH)
+	$(PY) benchmarks/gns_configs_cost.py $(BENCH)
 
 # GNS accuracy and the hybrid Pareto front need the datasets of the model cards (data/)
 bench-gns: $(VENV)/.installed-test
-	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_columns --data data/columns_test.h5
-	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_cg16 --data data/columns16_test.h5 \
-		--out benchmarks/results/gns_cg16_accuracy.json
-	$(PY) benchmarks/gns_accuracy_speed.py --model src/diffgns/models/gns_cg16_pfn --data data/columns16_test.h5 \
-		--out benchmarks/results/gns_cg16_pfn_accuracy.json --repeats 5 --mpm-1e-5-frames 10
-	$(PY) benchmarks/gns_neighbor_list.py --model src/diffgns/models/gns_cg16_pfn --data data/columns16_test.h5
-	$(PY) benchmarks/hybrid_pareto.py
-	$(PY) benchmarks/inverse_gns_memory.py
+	$(PY) benchmarks/gns_accuracy_speed.py --model gns_columns --data data/columns_test.h5 $(BENCH)
+	$(PY) benchmarks/gns_accuracy_speed.py --model gns_cg16 --data data/columns16_test.h5 \
+		--out benchmarks/results/gns_cg16_accuracy.json $(BENCH)
+	$(PY) benchmarks/gns_accuracy_speed.py --model gns_cg16_pfn --data data/columns16_test.h5 \
+		--out benchmarks/results/gns_cg16_pfn_accuracy.json --repeats 5 --mpm-1e-5-frames 10 $(BENCH)
+	$(PY) benchmarks/gns_neighbor_list.py --model gns_cg16_pfn --data data/columns16_test.h5 $(BENCH)
+	$(PY) benchmarks/hybrid_pareto.py $(BENCH)
+	$(PY) benchmarks/inverse_gns_memory.py $(BENCH)
 	$(PY) benchmarks/inverse_gns_bias.py
