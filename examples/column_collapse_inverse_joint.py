@@ -127,10 +127,10 @@ def main(argv=None):
     if args.simulator == "gns":
         sim = gns_simulator(col, history="mpm")
         sim.allocate(start)
-        simulate, on_overflow = sim.rollout, sim.reallocate
+        simulate, on_overflow = sim.simulate, sim.reallocate
     else:
         sim = mpm_simulator(col)
-        simulate, on_overflow = sim.rollout, sim.reallocate
+        simulate, on_overflow = sim.simulate, sim.reallocate
     print(f"observation: MPM phi={args.target_phi:g}, {second}={args.target_second:g} "
           f"({target_col.n_nodes} nodes); simulator {args.simulator} on a column of aspect "
           f"ratio {a_sim:g} ({col.n_nodes} nodes); {time.perf_counter() - t_start:.1f} s",

@@ -56,6 +56,14 @@ def test_invert_recovers_the_friction_angle_of_a_sliding_mass_with_the_mpm(
     assert s["converged"] and s["particles"] == 64 and s["frames"] == 41
     assert s["history"][0]["loss"] > 1e3 * s["history"][-1]["loss"]
     assert (out / "convergence.png").exists() and (out / "deposits.png").exists()
+    # the same from the measured runout alone (the farthest particle, as `simulate` reports)
+    runout = json.loads((obs / "summary.json").read_text())["final_runout_m"]
+    rc = main(["invert", str(scene), "--fit", "friction_angle=40:0:90", "--observed-runout",
+               str(runout), "--frames", "40", "--dtype", "float64", "--step-tol", "0.001",
+               "--out", str(tmp_path / "inv_runout")])
+    s = json.loads((tmp_path / "inv_runout" / "summary.json").read_text())
+    assert rc == 0 and s["objective"] == "runout-max" and s["target"] is None
+    assert s["recovered"]["friction_angle"] == pytest.approx(30.0, abs=0.02)
 
 
 def test_invert_with_a_gns_refuses_a_scene_its_model_does_not_support(tmp_path, capsys):
@@ -83,7 +91,7 @@ def test_invert_argument_errors_name_the_fix(tmp_path, capsys):
     assert "no obstacle '3'" in capsys.readouterr().err
     assert main(base + ["--fit", "E=1e6:1e5:1e7", "--frames", "4", "--simulator", "gns",
                         "--coarse-grain", "2"]) == 2
-    assert "--coarse-grain and --frame-stride are the MPM's" in capsys.readouterr().err
+    assert "--coarse-grain and --frame-stride are for the MPM alone" in capsys.readouterr().err
 
 
 def test_parser_lists_every_command_and_the_invert_choices_match_the_library():

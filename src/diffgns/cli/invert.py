@@ -70,10 +70,10 @@ def run(args) -> int:
     from diffgns.scene.files import load_scene
 
     t_start = time.perf_counter()
-    if args.simulator != "mpm":
+    if args.simulator != "mpm" or args.model:
         if args.coarse_grain or args.frame_stride:
-            raise ValueError("--coarse-grain and --frame-stride are the MPM's; a learned "
-                             "simulator observes as its model folder says")
+            raise ValueError("--coarse-grain and --frame-stride are for the MPM alone; with "
+                             "--model (or a learned simulator) the model folder sets them")
         args.model = args.model or "gns_columns"
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
@@ -82,7 +82,7 @@ def run(args) -> int:
     transforms = {name: tf for name, _, tf in fits if tf is not None}
     truth = dict(parse_fit(s)[:2] for s in args.truth)
     scene = load_scene(args.scene)
-    loaded = load_gns(args.model) if args.simulator != "mpm" or args.model else None
+    loaded = load_gns(args.model) if args.model else None
     info = loaded[2] if loaded else None
     stride = int(info.get("frame_stride", 1)) if info else (args.frame_stride or 1)
     observed = _load_observation(args) if args.observation else None
@@ -111,15 +111,14 @@ def run(args) -> int:
           flush=True)
     sim = make_simulator(args.simulator, obs, args.model, loaded=loaded, observed=nodes,
                          history=history, block=args.block, theta0=theta0)
-    objective = make_objective(args.objective or ("runout" if nodes is not None
-                                                  else "runout-max"),
-                               obs, observed=nodes, frame=args.frame,
+    name = args.objective or ("runout" if nodes is not None else "runout-max")
+    objective = make_objective(name, obs, observed=nodes, frame=args.frame,
                                observed_runout=args.observed_runout, origin=args.origin)
     solve(sim, objective, theta0, obs, args.out, transforms=transforms,
           optimizer=args.optimizer, lr=args.lr, max_iter=args.max_iter,
           step_tol=args.step_tol, gradient=args.gradient, observed=nodes, truth=truth,
           label=args.simulator, t_start=t_start,
-          extra=dict(scene=str(args.scene), objective=args.objective,
+          extra=dict(scene=str(args.scene), objective=name,
                      observation=what, model=str(args.model) if loaded else None,
                      history=history if args.simulator == "gns" else None))
     return 0

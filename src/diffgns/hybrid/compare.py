@@ -117,14 +117,14 @@ def make_hybrid(scene, gns, info: dict, schedule: Schedule, resolution: str = "e
     return Hybrid(MPM(scene), gns, sup.frame_stride, sup.factor, schedule)
 
 
-def run_hybrid(scene, gns, gns_params, info: dict, schedule: Schedule, n_frames: int,
+def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: int,
                repeats: int = 3, cells_across: int | None = None):
     """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames;
     ``cells_across``: the resolution of ``scene`` when it is not the model's own (nodes then
     keep the trained spacing)."""
     own = cells_across is None or cells_across == model_cells(info)
     hyb = make_hybrid(scene, gns, info, schedule, "exact" if own else "node-spacing")
-    params = HybridParams(hyb.mpm.params(), gns_params)
+    params = HybridParams(hyb.mpm.params(), network)
     s = hyb.mpm.init()
     t0 = time.perf_counter()
     _, state = jax.block_until_ready(hyb.run(params, s, n_frames))  # allocate a list that fits

@@ -168,7 +168,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
     out.mkdir(parents=True, exist_ok=True)
 
     def loss(theta):
-        pos, overflow = sim.rollout(theta)
+        pos, overflow = sim.simulate(theta)
         return objective(pos), {"overflow": overflow, "positions": pos}
 
     opt = inverse.make_optimizer(optimizer, lr or (1.0 if optimizer == "gauss-newton"

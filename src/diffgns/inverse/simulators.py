@@ -12,7 +12,7 @@ and frames, so objectives and targets do not care which one produced a trajector
 * :class:`HybridSimulator` (:func:`hybrid_simulator`): :class:`diffgns.hybrid.Hybrid` (MPM
   warm-up, then GNS segments with MPM refinement).
 
-Every adapter has ``rollout(theta) -> (positions, overflow)`` (traceable), is callable
+Every adapter has ``simulate(theta) -> (positions, overflow)`` (traceable), is callable
 (``theta -> positions``) and has ``reallocate(theta)`` (outside jit). The neighbour list of
 a learned simulator travels in its state: the adapter holds an allocated initial state, and
 ``reallocate`` replaces it by one with room for a rollout at ``theta``
@@ -53,13 +53,13 @@ class MPMSimulator:
     def __init__(self, obs: SceneObservation, block: int | None = 25):
         self.obs, self.block = obs, block
 
-    def rollout(self, theta):
+    def simulate(self, theta):
         """((n_obs, n, 2) node positions, False): the MPM never overflows."""
         pos = self.obs.mpm_positions(theta, self.obs.n_frames, self.block)
         return self.obs.observe(pos), jnp.asarray(False)
 
     def __call__(self, theta):
-        return self.rollout(theta)[0]
+        return self.simulate(theta)[0]
 
     def reallocate(self, theta) -> None:
         """Nothing to re-allocate."""
@@ -85,7 +85,7 @@ class GNSSimulator:
         n_steps: GNS frames to predict after the history.
         checkpoint_block: frames per ``jax.checkpoint`` block (None: no checkpointing).
         extra_capacity: neighbour-list head-room (edge slots per node) above what the
-            initial frame needs; an overflow is reported by :meth:`rollout` and fixed by
+            initial frame needs; an overflow is reported by :meth:`simulate` and fixed by
             :meth:`reallocate`.
         material: ``theta -> (n,) or scalar`` material feature (default
             ``tan(theta["friction_angle"])``).
@@ -135,7 +135,7 @@ class GNSSimulator:
         mat = jnp.asarray(self.material(theta), hist.dtype)
         return hist, GNSParams(self.network, mat), state
 
-    def rollout(self, theta):
+    def simulate(self, theta):
         """((C + 1 + n_steps, n, 2) positions, overflow flag) at ``theta``."""
         hist, params, state = self._inputs(theta)
         frames, _ = rollout(self.gns, params, state, self.n_steps,
@@ -143,7 +143,7 @@ class GNSSimulator:
         return jnp.concatenate([hist, frames.positions[1:]]), jnp.any(frames.overflow)
 
     def __call__(self, theta):
-        return self.rollout(theta)[0]
+        return self.simulate(theta)[0]
 
     def reallocate(self, theta) -> None:
         """Grow the neighbour list until a forward rollout at ``theta`` does not overflow."""
@@ -187,7 +187,7 @@ class HybridSimulator:
             state = state._replace(mpm=mpm_state, history=hist)
         return params, state
 
-    def rollout(self, theta):
+    def simulate(self, theta):
         """((n_obs, n, 2) node positions, overflow flag) at ``theta``."""
         params, state = self._inputs(theta)
         frames, _ = rollout(self.hybrid, params, state, self.n_frames,
@@ -195,7 +195,7 @@ class HybridSimulator:
         return frames.nodes, jnp.any(frames.overflow)  # the hybrid's nodes are obs's nodes
 
     def __call__(self, theta):
-        return self.rollout(theta)[0]
+        return self.simulate(theta)[0]
 
     def reallocate(self, theta) -> None:
         """Grow the neighbour list until a forward rollout at ``theta`` does not overflow."""
