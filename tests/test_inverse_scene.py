@@ -61,6 +61,11 @@ def test_set_params_writes_any_leaf_by_name_and_passes_gradients():
     g = jax.grad(lambda th: sum(jnp.sum(leaf) for leaf in jax.tree.leaves(
         set_params(p0, scene, th))))({"rho": 1.0, "wall_mu": 0.1, "E[1]": 1.0})
     assert g == {"rho": 2.0, "wall_mu": 4.0, "E[1]": 1.0}  # one leaf entry per use
+    # without a scene: bodies by index, the same values
+    by_index = {k: v for k, v in theta.items() if k not in ("friction_angle[left]",
+                                                             "E[block]")}
+    q = set_params(p0, None, by_index | {"friction_angle[0]": 25.0, "E[1]": 3e6})
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(q)))
     for bad, msg in [("friction_angle[right]", "no body 'right'; this scene has bodies "
                       r"\['left', 'block'\]"), ("wall_mu[front]", "no wall"),
                      ("stiffness", "unknown parameter 'stiffness'"), ("gravity", "component")]:

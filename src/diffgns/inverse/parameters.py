@@ -64,19 +64,20 @@ def _index(key: str | None, labels: list[str], what: str, name: str) -> int | No
                      f"(or indices 0..{len(labels) - 1})")
 
 
-def _target(scene, name: str) -> tuple[str, int | None]:
-    """(MPMParams field, index or None for all) of a parameter name in ``scene``."""
+def _target(bodies: list[str], n_obstacles: int, name: str) -> tuple[str, int | None]:
+    """(MPMParams field, index or None for all) of a parameter name in a scene with bodies
+    named ``bodies`` and ``n_obstacles`` obstacles."""
     base, key = _split(name)
     if base in BODY_FIELDS:
-        return base, _index(key, [b.name for b in scene.bodies], "body", name)
+        return base, _index(key, bodies, "body", name)
     if base == "floor_mu" and key is None:
         return "wall_mu", WALL_NAMES.index("bottom")
     if base == "wall_mu":
         return "wall_mu", _index(key, list(WALL_NAMES), "wall", name)
     if base == "obstacle_mu":
-        if not scene.obstacles:
+        if not n_obstacles:
             raise ValueError(f"{name}: the scene has no obstacles")
-        return "obstacle_mu", _index(key, [""] * len(scene.obstacles), "obstacle", name)
+        return "obstacle_mu", _index(key, [""] * n_obstacles, "obstacle", name)
     if base == "gravity":
         if key not in ("x", "y", "0", "1"):
             raise ValueError(f"{name}: fit a gravity component, gravity[x] or gravity[y]")
@@ -92,19 +93,24 @@ def check_names(scene, names, state_params=()) -> None:
     """Raise ValueError naming any parameter that ``scene`` does not have."""
     for k in names:
         if k not in state_params:
-            _target(scene, k)
+            _target([b.name for b in scene.bodies], len(scene.obstacles), k)
 
 
 def set_params(params, scene, theta: dict):
     """``params`` (MPMParams) with the named scalars of ``theta`` written in (differentiable).
 
-    Names listed in :data:`STATE_PARAMS` are skipped (they set the initial state).
+    ``scene`` (or None: bodies by index only) names the bodies. Names listed in
+    :data:`STATE_PARAMS` are skipped (they set the initial state).
     """
+    if scene is not None:
+        bodies, n_obstacles = [b.name for b in scene.bodies], len(scene.obstacles)
+    else:
+        bodies, n_obstacles = [""] * len(params.E), len(params.obstacle_mu)
     rep: dict[str, Any] = {}
     for k, v in theta.items():
         if _split(k)[0] in STATE_PARAMS:
             continue
-        field, i = _target(scene, k)
+        field, i = _target(bodies, n_obstacles, k)
         cur = rep.get(field, getattr(params, field))
         v = jnp.asarray(v, cur.dtype)
         rep[field] = jnp.broadcast_to(v, cur.shape) if i is None else cur.at[i].set(v)
