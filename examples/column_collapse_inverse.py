@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 from diffgns.inverse.job import OBJECTIVES, make_objective, make_simulator, solve
-from diffgns.inverse.simulators import DEFAULT_MODEL, Column, ColumnCase, load_gns
+from diffgns.inverse.simulators import DEFAULT_MODEL, Column, ColumnCase, load_gns, model_info
 
 GNS_PHI_RANGE = (20.0, 45.0)  # friction angles of the shipped model's training data
 GNS_ASPECT_RANGE = (0.5, 3.0)
@@ -83,7 +83,8 @@ def run(args) -> dict:
         if not GNS_ASPECT_RANGE[0] <= args.aspect_ratio <= GNS_ASPECT_RANGE[1]:
             print(f"warning: aspect ratio {args.aspect_ratio:g} is outside the GNS training "
                   f"range {GNS_ASPECT_RANGE}", flush=True)
-    column = Column(ColumnCase(aspect_ratio=args.aspect_ratio))
+    # the column of the model's training data (box, width, resolution, nodes, frame stride)
+    column = Column(ColumnCase.from_model(model_info(args.model), args.aspect_ratio))
     truth = {"friction_angle": args.target_phi}
     observed = column.observation(truth)  # the MPM: physical truth, seen as nodes
     print(f"observation: MPM, {column.scene.n_particles} particles -> {column.n_nodes} nodes, "

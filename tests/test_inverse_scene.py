@@ -144,3 +144,20 @@ def test_learned_simulators_refuse_unsupported_scenes_and_parameters():
     with pytest.raises(ValueError, match="no obstacles"):
         make_simulator("mpm", SceneObservation(_obstacle_scene(obstacles=()), 2),
                        theta0={"obstacle_mu": 0.3})
+
+
+def test_column_case_from_a_model_folder_is_a_scene_the_model_supports():
+    from diffgns.graph.support import check_scene
+    from diffgns.inverse.observation import Column, ColumnCase
+    from diffgns.inverse.simulators import model_info
+
+    info = model_info("gns_columns")
+    assert ColumnCase.from_model(info, 1.75) == ColumnCase(aspect_ratio=1.75)
+    cg16 = model_info("gns_cg16")
+    case = ColumnCase.from_model(cg16, 1.0, n_frames=10)
+    assert (case.cells_across, case.coarse_grain, case.frame_stride) == (16, 16, 2)
+    col = Column(case)
+    assert col.scene.n_cells == (128, 56) and col.n_nodes == 64  # 1024 particles / 16
+    assert check_scene(col.scene, cg16).factor == 16
+    with pytest.raises(ValueError, match="not trained on column collapses"):
+        ColumnCase.from_model({"source": {"kind": "squares"}, "gns": {"bounds": [[0, 1]] * 2}})

@@ -204,8 +204,11 @@ class SceneObservation:
 
 @dataclass(frozen=True)
 class ColumnCase:
-    """A column collapse in the box the shipped GNS was trained in (lengths m, frames of
-    2.5 ms): column ``width`` x ``aspect_ratio * width`` against the left wall."""
+    """A column collapse (lengths m, frames of 2.5 ms): column ``width`` x ``aspect_ratio *
+    width`` against the left wall of a ``domain_length`` x ``domain_height`` box, observed as
+    nodes of ``coarse_grain`` particles every ``frame_stride`` frames. :meth:`from_model`
+    reads all but the aspect ratio, floor and duration from a model folder; the defaults are
+    the training columns of the shipped 8-cell models (``gns_columns``, ``gns_small``)."""
 
     aspect_ratio: float = 2.0
     width: float = 0.1
@@ -216,6 +219,25 @@ class ColumnCase:
     n_frames: int = 250
     frame_stride: int = 2
     coarse_grain: int = 4
+
+    @classmethod
+    def from_model(cls, info: dict, aspect_ratio: float = 2.0, floor_mu: float = 0.5,
+                   n_frames: int = 250) -> ColumnCase:
+        """The column of a model's training data (``info``: its ``config.json``): column
+        width, cells across it, box, particles per node and frame stride."""
+        src = info.get("source") or {}
+        if src.get("kind") != "column" or not {"width", "cells_across"} <= set(src):
+            raise ValueError(f"the model was not trained on column collapses (source {src})")
+        (x0, x1), (y0, y1) = src.get("bounds") or info["gns"]["bounds"]
+
+        def tidy(v: float) -> float:  # 0.35000000000000003 -> 0.35 (a whole number of cells)
+            return float(f"{v:.12g}")
+
+        return cls(aspect_ratio=aspect_ratio, width=float(src["width"]),
+                   cells_across=int(src["cells_across"]), domain_length=tidy(x1 - x0),
+                   domain_height=tidy(y1 - y0), floor_mu=floor_mu, n_frames=n_frames,
+                   frame_stride=int(info.get("frame_stride", 1)),
+                   coarse_grain=int(info.get("factor", 1)))
 
 
 class Column(SceneObservation):

@@ -22,6 +22,7 @@ scene or observation the model does not support, naming why.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from diffgns.inverse.parameters import STATE_PARAMS
 
 __all__ = ["Column", "ColumnCase", "DEFAULT_MODEL", "GNSSimulator", "HybridSimulator",
            "MPMSimulator", "SceneObservation", "check_model", "gns_simulator",
-           "hybrid_simulator", "load_gns", "mpm_simulator"]
+           "hybrid_simulator", "load_gns", "model_info", "mpm_simulator"]
 
 DEFAULT_MODEL = "gns_columns"  # a shipped model (diffgns.models.model_path)
 
@@ -204,16 +205,26 @@ class HybridSimulator:
         self.state = self.state._replace(nbrs=start.nbrs)
 
 
-def load_gns(model: str | Path = DEFAULT_MODEL):
-    """(GNS, params, info) of a model folder or shipped model name, with a clear error."""
-    from diffgns.graph.train_loop import load_model
+def _model_folder(model: str | Path) -> Path:
     from diffgns.models import model_path
 
     path = model_path(model)
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"no GNS model in {path} (config.json missing); pass "
                                 "--model gns_columns or train one with `diffgns train`")
-    return load_model(path)
+    return path
+
+
+def model_info(model: str | Path = DEFAULT_MODEL) -> dict:
+    """The ``config.json`` of a GNS model folder or shipped model name (no weights loaded)."""
+    return json.loads((_model_folder(model) / "config.json").read_text())
+
+
+def load_gns(model: str | Path = DEFAULT_MODEL):
+    """(GNS, params, info) of a model folder or shipped model name, with a clear error."""
+    from diffgns.graph.train_loop import load_model
+
+    return load_model(_model_folder(model))
 
 
 def check_model(obs: SceneObservation, loaded, model="the model") -> None:
