@@ -51,7 +51,7 @@ def loss_fn(n_steps: int, block: int | None, aspect_ratio: float):
     obj = objectives.runout_loss(observed[:sim.C + 1 + n_steps], method="softmax")
 
     def loss(phi):
-        pos, overflow = sim.rollout({"friction_angle": phi})
+        pos, overflow = sim.simulate({"friction_angle": phi})
         return obj(pos)
 
     return loss, col.n_nodes

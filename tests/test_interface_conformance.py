@@ -149,6 +149,7 @@ def test_jit_equals_eager_and_no_recompilation(case):
     other = jax.tree.map(lambda a: a * 1.01 if jnp.issubdtype(jnp.asarray(a).dtype,
                                                                 jnp.floating) else a, params)
     rollout_jit(sim, other, state, n_frames=N_FRAMES)
+    rollout_jit(sim, other, state, N_FRAMES, checkpoint_block=None)  # spelled differently
     assert rollout_jit._cache_size() == size  # new values, same program
 
 

@@ -149,9 +149,20 @@ def rollout(sim: Simulator[P, S, Any], params: P, state: S, n_frames: int, *,
     return frames, final
 
 
-rollout_jit = jax.jit(rollout, static_argnames=("sim", "n_frames", "checkpoint_block"))
-rollout_jit.__doc__ = """:func:`rollout` compiled once per (simulator, n_frames, block, shapes):
-new parameter values or states of the same shapes never recompile."""
+_rollout_compiled = jax.jit(rollout, static_argnames=("sim", "n_frames", "checkpoint_block"))
+
+
+def rollout_jit(sim: Simulator[P, S, Any], params: P, state: S, n_frames: int,
+                checkpoint_block: int | None = None) -> tuple[Any, S]:
+    """:func:`rollout` compiled once per (simulator, n_frames, block, shapes): new parameter
+    values or states of the same shapes never recompile (the static arguments are normalised,
+    so ``checkpoint_block`` given or left out is the same program)."""
+    return _rollout_compiled(sim, params, state, n_frames=int(n_frames),  # type: ignore[no-any-return]
+                             checkpoint_block=None if not checkpoint_block
+                             else int(checkpoint_block))
+
+
+rollout_jit._cache_size = _rollout_compiled._cache_size  # type: ignore[attr-defined]
 
 
 def overflow_flags(frames: Any) -> np.ndarray:
