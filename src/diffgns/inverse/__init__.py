@@ -6,7 +6,8 @@
 :mod:`~diffgns.inverse.optimizers` (make_optimizer, gauss_newton_step),
 :mod:`~diffgns.inverse.gradients` (the finite-difference helper, gradient_check),
 :mod:`~diffgns.inverse.memory` (RSS, XLA memory analysis) and :mod:`~diffgns.inverse.mpm`
-(apply_theta, frames_to_rest). Objectives are in :mod:`diffgns.inverse.objectives`,
+(frames_to_rest), :mod:`~diffgns.inverse.parameters` (set_params: any MPMParams leaf by
+name). Objectives are in :mod:`diffgns.inverse.objectives`,
 Levenberg-Marquardt in :mod:`diffgns.inverse.lsq`.
 """
 from diffgns.inverse.gradients import (
@@ -16,8 +17,9 @@ from diffgns.inverse.gradients import (
     gradient_check,
 )
 from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
-from diffgns.inverse.mpm import MPM_STATE_PARAMS, apply_theta, frames_to_rest
+from diffgns.inverse.mpm import frames_to_rest
 from diffgns.inverse.optimizers import gauss_newton_step, make_optimizer
+from diffgns.inverse.parameters import STATE_PARAMS, parse_fit, set_params
 from diffgns.inverse.solve import InverseResult, evaluate_redo, optimize, record
 from diffgns.inverse.transforms import (
     DEFAULT_TRANSFORMS,
@@ -34,9 +36,8 @@ __all__ = [
     "FRICTION_ANGLE",
     "Identity",
     "InverseResult",
-    "MPM_STATE_PARAMS",
+    "STATE_PARAMS",
     "Transform",
-    "apply_theta",
     "central_difference",
     "current_rss_mb",
     "evaluate_redo",
@@ -50,5 +51,7 @@ __all__ = [
     "optimize",
     "peak_rss_mb",
     "record",
+    "set_params",
+    "parse_fit",
     "setup",
 ]

@@ -29,7 +29,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
-from diffgns.inverse import Bounded
+from diffgns.inverse.transforms import Bounded
 from diffgns.scene.elements import WALL_NAMES
 
 __all__ = ["BODY_FIELDS", "STATE_PARAMS", "check_names", "parse_fit", "set_params"]
