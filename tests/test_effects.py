@@ -23,7 +23,7 @@ def _scene(material, walls=Walls(), obstacles=(), gravity=(0.0, -9.81)):
 
 def _jaxpr(scene) -> str:
     sim = MPM(scene)
-    return str(jax.make_jaxpr(sim.substep)(sim.params(), sim.init_state()))
+    return str(jax.make_jaxpr(sim.substep)(sim.params(), sim.init()))
 
 
 NAMES = ["drucker_prager", "elastic_corotated", "elastic_linear", "fluid", "wall_friction",
@@ -60,7 +60,7 @@ def test_obstacles_traced_only_when_declared():
 @pytest.mark.parametrize("gravity,expected", [((0.0, 0.0), False), ((0.0, -9.81), True)])
 def test_gravity_traced_only_when_nonzero(gravity, expected):
     sim = MPM(_scene(Elastic(), gravity=gravity))
-    closed = jax.make_jaxpr(sim.substep)(sim.params(), sim.init_state())
+    closed = jax.make_jaxpr(sim.substep)(sim.params(), sim.init())
     # gravity is the only use of params.gravity: its input variable is used iff traced
     flat, _ = jax.tree.flatten(sim.params())
     g_var = closed.jaxpr.invars[[i for i, f in enumerate(flat) if f.shape == (2,)][0]]
