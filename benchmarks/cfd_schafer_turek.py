@@ -21,11 +21,11 @@ import argparse
 import sys
 
 import protocol
-from timing import measure, no_sync
 
 from diffgns.mesh.analysis import shedding_metrics, shedding_onset
 from diffgns.mesh.cfd import FlowParams, run_case
 from diffgns.mesh.geometry import ChannelGeometry, build_mesh
+from diffgns.timing import measure, no_sync
 
 TARGETS = dict(strouhal=(0.295, 0.305), cd_max=(3.22, 3.24), cl_max=(0.99, 1.01))
 TOL = dict(strouhal=0.0, cd_max=0.02, cl_max=0.02)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import protocol
-from timing import interleave, time_call, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.graph.data import load_trajectories
@@ -29,6 +29,7 @@ from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
 from diffgns.interface import rollout_safe
 from diffgns.scene.builders import column_collapse
+from diffgns.timing import interleave, time_call
 
 
 # ---------------------------------------------------------------- simulator calls

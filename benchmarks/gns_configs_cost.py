@@ -19,10 +19,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import protocol
-from timing import interleave, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns.graph.features import ParticleStats
 from diffgns.graph.gns import GNS, GNSConfig
+from diffgns.timing import interleave
 
 CONFIGS = [  # (latent, mp_steps, attention, coarse-grain factor)
     (128, 10, False, 1), (128, 10, True, 1), (64, 5, False, 1), (64, 5, True, 1),

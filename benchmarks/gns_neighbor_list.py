@@ -21,7 +21,7 @@ import dataclasses
 
 import numpy as np
 import protocol
-from timing import interleave, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns.graph.data import load_trajectories
 from diffgns.graph.evaluate import reference_inputs
@@ -29,6 +29,7 @@ from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import NeighborBuilder
 from diffgns.graph.train_loop import load_model
 from diffgns.interface import rollout_jit, rollout_safe
+from diffgns.timing import interleave
 
 
 def _variant(gns: GNS, multiplier: float, cell_list: bool) -> GNS:

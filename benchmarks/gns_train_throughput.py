@@ -47,7 +47,8 @@ def train_step_call(data: str, batch: int):
 
 def worker(data: str, batch: int, repeats: int) -> dict:
     import jax
-    from timing import time_call
+
+    from diffgns.timing import time_call
 
     call, nodes = train_step_call(data, batch)
     t = time_call(call, repeats)[0]

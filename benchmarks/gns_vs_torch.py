@@ -58,7 +58,9 @@ import math
 
 import numpy as np
 import protocol
-from timing import block, interleave, measure, no_sync, time_call, warm_up_jax
+from protocol import warm_up_jax
+
+from diffgns.timing import block, interleave, measure, no_sync, time_call
 
 RADIUS = 0.015
 SPACING = RADIUS / 2.5

@@ -26,12 +26,13 @@ from pathlib import Path
 
 import numpy as np
 import protocol
-from timing import block, measure, time_call, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.compare import column_scene, model_cells, node_factor, score_against
 from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
+from diffgns.timing import block, measure, time_call
 
 CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
 

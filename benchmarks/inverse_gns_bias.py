@@ -21,7 +21,8 @@ import argparse
 
 import numpy as np
 import protocol
-from timing import measure, no_sync
+
+from diffgns.timing import measure, no_sync
 
 METHODS = ("max", "softmax", "percentile")
 

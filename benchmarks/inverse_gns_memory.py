@@ -30,7 +30,10 @@ import time
 from pathlib import Path
 
 import protocol
-from timing import compile_ahead, measure, no_sync, peak_rss_mb, time_call, warm_up_jax
+from protocol import warm_up_jax
+
+from diffgns.memory import compile_ahead, peak_rss_mb
+from diffgns.timing import measure, no_sync, time_call
 
 TAG = "INVERSE_GNS_MEMORY_RESULT "
 

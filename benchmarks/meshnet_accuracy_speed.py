@@ -23,13 +23,14 @@ from pathlib import Path
 
 import numpy as np
 import protocol
-from timing import measure, no_sync, time_call, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns import rollout_jit
 from diffgns.mesh.datagen import CylinderRun, time_case
 from diffgns.mesh.evaluate import evaluate_trajectory, pressure_force_coefficients
 from diffgns.mesh.figures import animate_vorticity, plot_lift, vorticity
 from diffgns.mesh.train import graph_of, load_cylinder, load_model
+from diffgns.timing import measure, no_sync, time_call
 
 
 def rollout_call(model, params, traj: dict, padding):

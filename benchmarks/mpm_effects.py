@@ -26,12 +26,13 @@ import argparse
 import jax
 import jax.numpy as jnp
 import protocol
-from timing import interleave, measure, warm_up_jax
+from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.scene import Body, BoxObstacle, Scene, Wall, Walls
 from diffgns.scene.materials import Elastic, Fluid, Sand
 from diffgns.scene.shapes import Rectangle
+from diffgns.timing import interleave, measure
 
 DX = 0.2 / 32
 DOMAIN = ((0.0, 1.0), (0.0, 0.5))

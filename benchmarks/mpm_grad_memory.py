@@ -44,7 +44,10 @@ from pathlib import Path
 from typing import Any
 
 import protocol
-from timing import Sample, compile_ahead, measure, no_sync, peak_rss_mb, stats, warm_up_jax
+from protocol import warm_up_jax
+
+from diffgns.memory import compile_ahead, peak_rss_mb
+from diffgns.timing import Sample, measure, no_sync, stats
 
 SCENE_KW = dict(width=0.1, aspect_ratio=2.0, friction_angle=30.0, cells_across=8)
 RESULT_TAG = "MPM_GRAD_MEMORY_RESULT "

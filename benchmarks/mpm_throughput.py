@@ -18,10 +18,11 @@ import argparse
 import jax
 import jax.numpy as jnp
 import protocol
-from timing import fmt_rate, measure, time_call, warm_up_jax
+from protocol import fmt_rate, warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.scene.builders import column_collapse
+from diffgns.timing import measure, time_call
 
 # (cells across the column, frames per timed call); 4 particles per cell -> N = 4 c^2
 SIZES = ((23, 10), (45, 4), (90, 2))

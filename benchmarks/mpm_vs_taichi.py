@@ -35,7 +35,9 @@ import sys
 
 import numpy as np
 import protocol
-from timing import fmt_rate, interleave, measure, no_sync
+from protocol import fmt_rate
+
+from diffgns.timing import interleave, measure, no_sync
 
 N_PARTICLES = 8192
 N_GRID = 128

@@ -28,7 +28,9 @@ The rules:
   to the machine and software description (``machine`` block).
 
 Timing itself (compile apart, ``block_until_ready``, medians, CPU time beside wall time,
-interleaved A/B rounds) is :mod:`timing`.
+interleaved A/B rounds) is the library's :mod:`diffgns.timing`, memory (peak RSS, XLA's
+analysis, ahead-of-time compiling) :mod:`diffgns.memory`; this module adds
+:func:`warm_up_jax` and :func:`fmt_rate`.
 """
 from __future__ import annotations
 
@@ -374,6 +376,20 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def warm_up_jax() -> None:
+    """Initialise the JAX backend (client, thread pools) so that the first measured
+    compile does not also pay for it."""
+    import jax
+    import jax.numpy as jnp
+
+    jax.block_until_ready(jnp.arange(8.0).sum() + 1.0)
+
+
+def fmt_rate(x: float) -> str:
+    """Human-readable rate (e.g. particle-substeps/s): ``"1.234 M"`` or ``"56.7 k"``."""
+    return f"{x / 1e6:.3f} M" if x >= 1e5 else f"{x / 1e3:.1f} k"
 
 
 def use_agg():

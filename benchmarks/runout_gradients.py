@@ -17,11 +17,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import protocol  # noqa: E402
-from timing import measure, no_sync  # noqa: E402
 
 from diffgns import MPM, rollout  # noqa: E402
 from diffgns.metrics import runout  # noqa: E402
 from diffgns.scene.builders import column_collapse  # noqa: E402
+from diffgns.timing import measure, no_sync  # noqa: E402
 
 METHODS = {"max": {"method": "max"}, "percentile99": {"method": "percentile", "q": 99.0},
            "softmax": {"method": "softmax"}}

@@ -1,5 +1,5 @@
-"""The benchmarks' measuring protocol and timing helper (benchmarks/protocol.py, timing.py),
-with faked load readings and a fake clock: nothing here runs a real benchmark."""
+"""The benchmarks' measuring protocol (benchmarks/protocol.py), with faked load readings:
+nothing here runs a real benchmark (the timing helper is tests/test_timing.py)."""
 from __future__ import annotations
 
 import argparse
@@ -12,7 +12,6 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import protocol  # noqa: E402
-import timing  # noqa: E402
 
 QUIET, LOADED = (0.4, 0.8, 1.2), (3.5, 2.0, 1.0)
 
@@ -26,19 +25,6 @@ def parse(*argv: str) -> argparse.Namespace:
 def start(*argv: str, load=QUIET, environ=None, **kw) -> protocol.Run:
     return protocol.start(parse(*argv), "bench", read=lambda: load,
                           environ={} if environ is None else environ, **kw)
-
-
-class FakeClock:
-    """A clock that the timed functions advance by hand."""
-
-    def __init__(self):
-        self.t = 100.0
-
-    def __call__(self) -> float:
-        return self.t
-
-    def advance(self, dt: float) -> None:
-        self.t += dt
 
 
 # ------------------------------------------------------------------ load check
@@ -203,61 +189,6 @@ def test_worker_inherits_the_parents_label():
     env = run.worker_env({})
     w = protocol.worker_run("x", env)
     assert not w.valid and w.label("t") == "INVALID (load 3.50) [2 threads] t"
-
-
-# ------------------------------------------------------------------ timing helper
-def test_measure_stops_the_clock_after_sync():
-    clock = FakeClock()
-    s, out = timing.measure(lambda: clock.advance(1.0) or "r", sync=lambda o: clock.advance(0.5),
-                            clock=clock, cpu=clock)
-    assert out == "r" and s.wall_s == pytest.approx(1.5) and s.cpu_s == pytest.approx(1.5)
-
-
-def test_time_call_times_the_first_call_apart():
-    clock = FakeClock()
-    durations = iter([5.0, 1.0, 3.0, 2.0])
-    t, _ = timing.time_call(lambda: clock.advance(next(durations)), repeats=3,
-                            sync=timing.no_sync, clock=clock, cpu=lambda: 0.0)
-    assert t["first_call_s"] == 5.0 and t["median_s"] == 2.0 and t["n"] == 3
-    assert t["compile_s"] == pytest.approx(3.0) and t["samples_s"] == [1.0, 3.0, 2.0]
-    assert t["cpu_median_s"] == 0.0 and "cpu_samples_s" in t
-
-
-def test_interleave_alternates_the_order_and_keeps_every_round():
-    calls = []
-    res = timing.interleave({"A": lambda: calls.append("A"), "B": lambda: calls.append("B")},
-                            rounds=4, sync=timing.no_sync)
-    assert calls == ["A", "B"] + ["A", "B", "B", "A", "A", "B", "B", "A"]
-    assert res.orders == [["A", "B"], ["B", "A"], ["A", "B"], ["B", "A"]]
-    doc = res.to_json()
-    assert len(doc["rounds"]) == 4 and doc["rounds"][1]["order"] == ["B", "A"]
-    assert set(doc["summary"]) == {"A", "B"} and "compile_s" in doc["summary"]["A"]
-
-
-def test_ratio_is_the_median_of_per_round_ratios():
-    clock = FakeClock()
-    walls = {"A": iter([9.0, 1.0, 2.0, 100.0]), "B": iter([9.0, 1.0, 4.0, 5.0])}
-    res = timing.interleave({k: (lambda k=k: clock.advance(next(walls[k]))) for k in walls},
-                            rounds=3, sync=timing.no_sync, clock=clock, cpu=clock)
-    # per-round ratios A/B: 1, 0.5, 20 -> median 1; the ratio of medians would be 2/4
-    assert res.ratio("A", "B") == pytest.approx(1.0)
-    assert res.summary("A")["median_s"] / res.summary("B")["median_s"] == pytest.approx(0.5)
-    assert res.ratio("A", "B", cpu=True) == pytest.approx(1.0)
-    assert res.summary("A")["first_call_s"] == 9.0
-
-
-def test_interleave_uses_each_contenders_own_sync():
-    synced = []
-    timing.interleave({"jax": lambda: 1, "torch": lambda: 2}, rounds=1, warmup=False,
-                      sync={"jax": lambda o: synced.append(("jax", o)),
-                            "torch": lambda o: synced.append(("torch", o))})
-    assert synced == [("jax", 1), ("torch", 2)]
-
-
-def test_cpu_seconds_counts_waited_for_children():
-    before = timing.cpu_seconds()
-    subprocess.run([sys.executable, "-c", "sum(i * i for i in range(3_000_000))"], check=True)
-    assert timing.cpu_seconds() - before > 0.05
 
 
 def test_finish_adds_the_pinned_run_once_and_draws_figures_only_in_the_users_run(

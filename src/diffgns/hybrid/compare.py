@@ -12,14 +12,11 @@ reference trajectory (normally a finer MPM) on the same GNS frames:
   reference particles that started nearest to it (resolutions may differ), averaged over
   particles; reported at the last frame and as the mean over all frames.
 
-Timings are steady-state seconds of the jitted rollout (compile separated, median of
-``repeats``, ``block_until_ready``).
+Timings are steady-state seconds of the jitted rollout (:func:`diffgns.timing.time_call`:
+compile separated, median of ``repeats``, ``block_until_ready``).
 """
 from __future__ import annotations
 
-import time
-
-import jax
 import numpy as np
 
 from diffgns import MPM
@@ -28,6 +25,7 @@ from diffgns.graph.support import node_factor as _node_factor
 from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
 from diffgns.interface import rollout_jit
 from diffgns.scene.builders import column_collapse
+from diffgns.timing import measure, time_call
 
 
 def lagrangian_map(x0: np.ndarray, x0_ref: np.ndarray) -> np.ndarray:
@@ -56,17 +54,11 @@ def score_against(x: np.ndarray, x_ref: np.ndarray, wall_x: float = 0.0) -> dict
                 mean_position_error_m=float(err.mean()), finite=bool(np.isfinite(x).all()))
 
 
-def _steady(fn, repeats: int):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t0)
-    med = float(np.median(ts))
-    return out, dict(seconds=med, seconds_all=ts, compile_s=max(0.0, first - med))
+def _timing(t: dict) -> dict:
+    """The timing keys of a row from :func:`~diffgns.timing.time_call`'s summary: steady
+    ``seconds`` (median), ``seconds_all``, ``cpu_seconds`` (median) and ``compile_s``."""
+    return dict(seconds=t["median_s"], seconds_all=t["samples_s"],
+                cpu_seconds=t["cpu_median_s"], compile_s=t["compile_s"])
 
 
 def model_cells(info: dict) -> int:
@@ -96,10 +88,9 @@ def run_mpm(scene, n_frames: int, stride: int, repeats: int = 3):
     """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
     sim = MPM(scene)
     p, s = sim.params(), sim.init()
-    out, t = _steady(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
-                     repeats)
-    t["substeps_per_frame"] = sim.n_sub
-    return np.asarray(out)[::stride], t
+    t, out = time_call(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
+                       repeats)
+    return np.asarray(out)[::stride], dict(_timing(t), substeps_per_frame=sim.n_sub)
 
 
 def node_factor(info: dict, cells_across: int) -> int:
@@ -126,13 +117,10 @@ def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: in
     hyb = make_hybrid(scene, gns, info, schedule, "exact" if own else "node-spacing")
     params = HybridParams(hyb.mpm.params(), network)
     s = hyb.mpm.init()
-    t0 = time.perf_counter()
-    _, state = jax.block_until_ready(hyb.run(params, s, n_frames))  # allocate a list that fits
-    first = time.perf_counter() - t0
-    res, t = _steady(lambda: hyb.run(params, s, n_frames, state=state)[0], repeats)
-    t["compile_s"] = max(0.0, first - t["seconds"])
-    t["mpm_fraction"] = res.mpm_fraction
-    return res, t
+    first, (_, state) = measure(lambda: hyb.run(params, s, n_frames))  # allocates a list
+    t, res = time_call(lambda: hyb.run(params, s, n_frames, state=state)[0], repeats,
+                       first=first)
+    return res, dict(_timing(t), mpm_fraction=res.mpm_fraction)
 
 
 def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,

@@ -5,7 +5,7 @@
 :mod:`~diffgns.inverse.transforms` (Bounded, Identity, DEFAULT_TRANSFORMS),
 :mod:`~diffgns.inverse.optimizers` (make_optimizer, gauss_newton_step),
 :mod:`~diffgns.inverse.gradients` (the finite-difference helper, gradient_check),
-:mod:`~diffgns.inverse.memory` (RSS, XLA memory analysis) and :mod:`~diffgns.inverse.mpm`
+:mod:`~diffgns.memory` (RSS, XLA memory analysis) and :mod:`~diffgns.inverse.mpm`
 (frames_to_rest), :mod:`~diffgns.inverse.parameters` (set_params: any MPMParams leaf by
 name). Objectives are in :mod:`diffgns.inverse.objectives`,
 Levenberg-Marquardt in :mod:`diffgns.inverse.lsq`.
@@ -16,7 +16,6 @@ from diffgns.inverse.gradients import (
     finite_difference_grad,
     gradient_check,
 )
-from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
 from diffgns.inverse.mpm import frames_to_rest
 from diffgns.inverse.optimizers import gauss_newton_step, make_optimizer
 from diffgns.inverse.parameters import STATE_PARAMS, parse_fit, set_params
@@ -29,6 +28,7 @@ from diffgns.inverse.transforms import (
     Transform,
     setup,
 )
+from diffgns.memory import current_rss_mb, memory_stats, peak_rss_mb
 
 __all__ = [
     "Bounded",

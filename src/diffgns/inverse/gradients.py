@@ -17,7 +17,6 @@ truncation error O(h^2 f'''), rounding error O(eps |f| / h).
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -25,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns.inverse.memory import memory_stats
+from diffgns.memory import compile_ahead
+from diffgns.timing import time_call
 
 
 def fd_step(x: float, rel_step: float, lo: float = -math.inf, hi: float = math.inf) -> float:
@@ -73,19 +73,13 @@ def gradient_check(loss_fn: Callable[[dict], jax.Array], theta: dict,
     out: dict[str, Any] = {"theta": {k: float(v) for k, v in theta.items()}}
     progs = {}
     for name, fn in (("forward", loss_fn), ("gradient", jax.grad(loss_fn))):
-        t0 = time.perf_counter()
-        progs[name] = jax.jit(fn).lower(th).compile()
-        out[f"{name}_compile_s"] = time.perf_counter() - t0
-        out[f"{name}_xla_memory"] = memory_stats(progs[name])
+        progs[name], info = compile_ahead(jax.jit(fn), th)
+        out[f"{name}_compile_s"] = info["lower_s"] + info["compile_s"]
+        out[f"{name}_xla_memory"] = info["memory"]
 
     def med(f):
-        jax.block_until_ready(f())
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            r = jax.block_until_ready(f())
-            ts.append(time.perf_counter() - t0)
-        return r, float(np.median(ts))
+        t, r = time_call(f, repeats)
+        return r, t["median_s"]
 
     def along(k: str) -> Callable[[float], jax.Array]:
         return lambda x: progs["forward"](dict(th, **{k: jnp.asarray(x, th[k].dtype)}))

@@ -18,9 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns.inverse.memory import memory_stats
 from diffgns.inverse.solve import InverseResult, evaluate_redo, record
 from diffgns.inverse.transforms import setup
+from diffgns.memory import compile_ahead
 
 
 def least_squares(residual_fn: Callable, theta0: dict, max_iter: int = 20,
@@ -56,10 +56,9 @@ def least_squares(residual_fn: Callable, theta0: dict, max_iter: int = 20,
 
     def build():
         nonlocal exe
-        t0 = time.perf_counter()
-        exe = jax.jit(jax.jacfwd(f, has_aux=True)).lower(u).compile()
-        result.compile_s += time.perf_counter() - t0
-        result.xla_memory = memory_stats(exe)
+        exe, info = compile_ahead(jax.jit(jax.jacfwd(f, has_aux=True)), u)
+        result.compile_s += info["lower_s"] + info["compile_s"]
+        result.xla_memory = info["memory"]
 
     def evaluate(uu):
         J, (r, aux) = exe(uu)

@@ -24,8 +24,8 @@ import numpy as np
 import optax
 
 from diffgns.inverse.gradients import central_difference, fd_step
-from diffgns.inverse.memory import current_rss_mb, memory_stats, peak_rss_mb
 from diffgns.inverse.transforms import setup
+from diffgns.memory import compile_ahead, current_rss_mb, peak_rss_mb
 
 __all__ = ["InverseResult", "evaluate_redo", "optimize", "record"]
 
@@ -133,10 +133,9 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         nonlocal exe
         f = lambda uu: full(to_theta(uu))
         fn = jax.value_and_grad(f, has_aux=True) if gradient == "ad" else f
-        t0 = time.perf_counter()
-        exe = jax.jit(fn).lower(u).compile()
-        result.compile_s += time.perf_counter() - t0
-        result.xla_memory = memory_stats(exe)
+        exe, info = compile_ahead(jax.jit(fn), u)
+        result.compile_s += info["lower_s"] + info["compile_s"]
+        result.xla_memory = info["memory"]
 
     def evaluate(u):
         if gradient == "ad":

@@ -11,20 +11,19 @@ For one trajectory of F frames (:func:`evaluate_trajectory`):
   twice the CFD's largest speed, and it stays periodic (St over its last third within 5% of
   St over its first third, peak-to-peak lift in the last third within a factor 2 of the
   CFD's);
-* cost: steady-state rollout seconds per simulated second (compile excluded, median of
-  ``repeats``) against the CFD's wall seconds per simulated second stored with the data.
+* cost: steady-state rollout seconds (and CPU seconds) per simulated second (compile
+  excluded, median of ``repeats``, :func:`diffgns.timing.time_call`) against the CFD's wall
+  seconds per simulated second stored with the data.
 """
 from __future__ import annotations
 
-import time
-
-import jax
 import numpy as np
 
 from diffgns.interface import rollout_jit
 from diffgns.mesh.analysis import shedding_metrics
 from diffgns.mesh.meshnet import MeshNet
 from diffgns.mesh.train import graph_of
+from diffgns.timing import time_call
 
 
 def cylinder_sides(cells: np.ndarray, on_cylinder: np.ndarray) -> np.ndarray:
@@ -80,14 +79,7 @@ def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor
         frames, _ = rollout_jit(model, params, state, n_frames=n_frames)
         return frames.velocity, frames.pressure[1:]
 
-    t0 = time.perf_counter()
-    vs, ps = jax.block_until_ready(roll(F - 1))
-    compile_s = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(roll(F - 1))
-        times.append(time.perf_counter() - t0)
+    timing, (vs, ps) = time_call(lambda: roll(F - 1), repeats)
     vs, ps = np.asarray(vs)[:, :n], np.asarray(ps)[:, :n]
     mask = np.asarray(graph.predicted)[:n]
     err = vs[:, mask] - traj["velocity"][:, mask]
@@ -116,6 +108,7 @@ def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor
         stable=bool(np.all(np.isfinite(long_v)) and long_speed < 2 * cfd_speed
                     and abs(last["strouhal"] / first["strouhal"] - 1) < 0.05
                     and 0.5 < last_pp / cfd_pp < 2.0),
-        compile_s=compile_s, model_s_per_sim_s=float(np.median(times)) / sim_seconds,
+        compile_s=timing["compile_s"], model_s_per_sim_s=timing["median_s"] / sim_seconds,
+        model_cpu_s_per_sim_s=timing["cpu_median_s"] / sim_seconds, model_timing=timing,
         cfd_s_per_sim_s=float(traj["attrs"].get("cfd_wall_per_sim_second", np.nan)),
         velocity=vs, pressure=ps, long_pressure=long_p)

@@ -1,0 +1,45 @@
+"""graph.evaluate.rollout_reference: the rollout from a reference's first frames, timed with
+diffgns.timing on the program the sizing run compiled."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diffgns.graph.evaluate import rollout_reference
+from diffgns.graph.train_loop import load_model
+from diffgns.interface import rollout_jit
+from diffgns.models import model_path
+from diffgns.trajectory import Trajectory
+
+N_PREDICTED = 4
+
+
+@pytest.fixture(scope="module")
+def case():
+    gns, params, info = load_model(model_path("gns_columns"))
+    C = gns.config.history
+    (x0, x1), (y0, y1) = info["gns"]["bounds"]
+    g = np.stack(np.meshgrid(np.linspace(0.05, 0.15, 8), np.linspace(0.01, 0.1, 8)), -1)
+    x = g.reshape(-1, 2).astype(np.float32)
+    pos = np.repeat(x[None], C + 1 + N_PREDICTED, axis=0)  # a column at rest
+    ref = Trajectory(positions=pos, velocities=np.zeros_like(pos),
+                     particle_type=np.zeros(len(x), np.int32),
+                     material=np.full(len(x), np.tan(np.radians(30.0)), np.float32),
+                     frame_dt=float(info.get("frame_dt", 2.5e-3)), bounds=((x0, x1), (y0, y1)))
+    return gns, params, ref
+
+
+def test_rollout_reference_keeps_the_given_frames_and_times_without_recompiling(case):
+    gns, params, ref = case
+    C = gns.config.history
+    untimed, none = rollout_reference(gns, params, ref, timed=False)
+    compiled = rollout_jit._cache_size()
+    timed, seconds = rollout_reference(gns, params, ref)
+    assert none is None and isinstance(seconds, float) and seconds > 0
+    assert rollout_jit._cache_size() == compiled  # the timed call reused the sizing program
+    assert timed.positions.shape == ref.positions.shape
+    np.testing.assert_array_equal(np.asarray(timed.positions[: C + 1]), ref.positions[: C + 1])
+    np.testing.assert_allclose(np.asarray(timed.positions), np.asarray(untimed.positions))
+    v = np.asarray(timed.velocities)
+    np.testing.assert_allclose(v[1:], np.diff(np.asarray(timed.positions), axis=0) / ref.frame_dt,
+                               rtol=1e-5, atol=1e-6)
