@@ -142,7 +142,7 @@ def test_jit_equals_eager_and_no_recompilation(case):
     # float32, fused against unfused: equal to round-off relative to each field's scale
     for x, y in zip(jax.tree.leaves(jitted), jax.tree.leaves(eager)):
         y = np.asarray(y, np.float64)
-        scale = np.abs(y).max() if y.size else 0.0
+        scale = np.abs(y).max(initial=0.0)
         np.testing.assert_allclose(np.asarray(x, np.float64), y, rtol=0,
                                    atol=5e-3 * scale + 1e-7)
     size = rollout_jit._cache_size()
@@ -167,7 +167,7 @@ def test_gradient_finite_and_checkpointed_equals_plain(case):
     for x, y in zip(jax.tree.leaves(ckpt_g), jax.tree.leaves(plain_g)):  # round-off only
         y = np.asarray(y, np.float64)
         np.testing.assert_allclose(np.asarray(x, np.float64), y, rtol=1e-4,
-                                   atol=1e-5 * np.abs(y).max() + 1e-12)
+                                   atol=1e-5 * np.abs(y).max(initial=0.0) + 1e-12)
     g = np.asarray(leaf(plain_g))
     assert np.isfinite(g).all() and np.abs(g).sum() > 0
     for x in jax.tree.leaves(plain_g):
