@@ -54,12 +54,12 @@ Writes ``benchmarks/results/gns_vs_torch.json``.
 from __future__ import annotations
 
 import argparse
-import math
 
 import numpy as np
 import protocol
 from protocol import warm_up_jax
 
+from diffgns.scene.materials import friction_feature  # noqa: E402
 from diffgns.timing import block, interleave, measure, no_sync, time_call
 
 RADIUS = 0.015
@@ -71,7 +71,7 @@ N_TYPES = 9
 TYPE_EMBED = 16
 MLP_LAYERS = 2
 SAND, KINEMATIC = 6, 3
-TAN_PHI = math.tan(math.radians(30.0))
+TAN_PHI = float(friction_feature(30.0))
 LN_EPS = 1e-6  # flax LayerNorm default; used on the torch side too so outputs match
 CONFIGS = {"reference": (128, 10), "small": (64, 5)}
 TARGET_RATIO = 0.5

@@ -34,6 +34,7 @@ from diffgns.graph.gns import GNSParams
 from diffgns.interface import rollout, rollout_safe
 from diffgns.inverse.observation import Column, ColumnCase, SceneObservation
 from diffgns.inverse.parameters import STATE_PARAMS
+from diffgns.scene.materials import friction_feature
 
 __all__ = ["Column", "ColumnCase", "DEFAULT_MODEL", "GNSSimulator", "HybridSimulator",
            "MPMSimulator", "SceneObservation", "check_model", "gns_simulator",
@@ -72,7 +73,7 @@ def mpm_simulator(obs: SceneObservation, block: int | None = 25) -> MPMSimulator
 
 
 def _tan_phi(theta):
-    return jnp.tan(jnp.deg2rad(theta["friction_angle"]))
+    return friction_feature(theta["friction_angle"])
 
 
 class GNSSimulator:
