@@ -73,7 +73,7 @@ class SceneObservation:
         self.scene = scene
         self.n_frames, self.frame_stride = int(n_frames), int(frame_stride)
         self.coarse_grain = int(coarse_grain)
-        self.mpm = MPM(scene, dtype)
+        self.mpm = MPM(scene, dtype, checkpoint_substeps=True)  # gradients: 1 state/frame
         self.state = self.mpm.init()
         self.cluster = coarse_grain_map(np.asarray(self.state.x.T), self.coarse_grain)
         self.n_nodes = int(self.cluster.max()) + 1
