@@ -19,17 +19,36 @@
 
 One module per group of subcommands (:mod:`.data`, :mod:`.train`, :mod:`.evaluate`,
 :mod:`.invert`); each registers its parsers and imports the library only when its command
-runs, so ``diffgns --help`` stays fast. Errors at the edge (invalid scene, unsupported
-scene for a model, unstable run) print ``diffgns: error: ...`` and exit with status 2.
+runs, so ``diffgns --help`` imports no JAX. :mod:`.checks` is the validation layer: invalid
+arguments, recipes, scenes and input files print one line ``diffgns: error: <field>: <what
+is wrong>; <fix>`` and exit with status 2 before anything is written; a failed command
+removes the output folders it created if they are empty; SIGINT/SIGTERM print one line and
+exit with 130/143 (``diffgns dataset`` keeps its finished trajectories, resumable).
 """
 from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import nullcontext
 
 from diffgns.cli import data, evaluate, invert, train
+from diffgns.cli.checks import Parser, report_interrupt, signals_as_exceptions
 
 GROUPS = (data, train, evaluate, invert)
+
+DESCRIPTION = """Differentiable MPM, GNS, hybrid and inverse problems. Commands:
+  simulate  run the MPM on a scene (animation, plots, VTK, HDF5)
+  dataset   generate an HDF5 training set (MPM columns or squares, cylinder-flow CFD)
+  train     train a particle GNS or a MeshGraphNet
+  average   average the weights of fine-tuned GNS models
+  rollout   roll a trained model out against a reference trajectory
+  hybrid    hybrid GNS/MPM run against the MPM and the GNS
+  invert    fit scene parameters to an observation
+  symbolic  recover n-body force laws by symbolic regression
+Run `diffgns <command> --help` for the options (SI units: m, s, kg, Pa, degrees)."""
+
+#: commands that handle SIGTERM themselves (a checkpoint at the current step)
+_OWN_SIGTERM = ("train", "symbolic")
 
 
 def _symbolic(args) -> int:
@@ -38,12 +57,12 @@ def _symbolic(args) -> int:
     return run_symbolic(args)
 
 
-def build_parser(argv=None) -> argparse.ArgumentParser:
+def build_parser(argv=None) -> Parser:
     """The ``diffgns`` parser (``argv``: the symbolic command's options are added only when
     it is the command, as they import the symbolic-regression code)."""
-    p = argparse.ArgumentParser(prog="diffgns", description="Differentiable MPM, GNS, hybrid "
-                                "and inverse problems (run `diffgns <command> --help`).")
-    sub = p.add_subparsers(dest="command", required=True)
+    p = Parser(prog="diffgns", description=DESCRIPTION,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True, metavar="<command>")
     for group in GROUPS:
         group.register(sub)
     y = sub.add_parser("symbolic", help="recover n-body force laws from a message network "
@@ -58,14 +77,33 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from diffgns.errors import SceneError, UnstableError
+    """Run ``diffgns`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status
+    (0, 2 for invalid input, 130/143 when interrupted) instead of raising SystemExit."""
+    from diffgns.errors import InputError, Interrupted, SceneError, UnstableError
+    from diffgns.io.files import new_dirs, remove_empty_dirs
 
-    args = build_parser(argv).parse_args(argv)
     try:
-        return args.func(args)
-    except (SceneError, UnstableError) as e:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed)
+        return e.code if isinstance(e.code, int) else int(e.code is not None)
+    out = getattr(args, "out", None)
+    created = new_dirs(out) if out else []
+    rc = 1
+    guard = nullcontext() if args.command in _OWN_SIGTERM else signals_as_exceptions()
+    try:
+        with guard:
+            rc = args.func(args)
+        return rc
+    except (SceneError, UnstableError, InputError) as e:
         print(f"diffgns: error: {e}", file=sys.stderr)
-        return 2
+        rc = 2
+        return rc
+    except (KeyboardInterrupt, Interrupted) as e:
+        rc = report_interrupt(e, getattr(e, "detail", ""))
+        return rc
+    finally:
+        if rc != 0:
+            remove_empty_dirs(created)
 
 
 if __name__ == "__main__":

@@ -3,20 +3,15 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
+
+from diffgns.cli.checks import check_dataset, check_simulate, count, finite, squares_kw
 
 
 def _simulate(args) -> int:
     from diffgns.io.outputs import run_mpm, write_outputs
-    from diffgns.scene.builders import column_collapse
-    from diffgns.scene.files import load_scene
 
-    if args.scene:
-        scene, L0 = load_scene(args.scene), None
-    else:
-        scene = column_collapse(width=args.width, aspect_ratio=args.aspect_ratio,
-                                friction_angle=args.friction_angle,
-                                cells_across=args.cells_across)
-        L0 = args.width
+    scene, L0 = check_simulate(args)
     print(f"scene: {scene.n_particles} particles, grid {scene.grid_shape}, "
           f"{scene.substeps} substeps/frame (dt = {scene.substep_dt:.2e} s), "
           f"effects: {', '.join(sorted(scene.effects))}")
@@ -29,6 +24,34 @@ def _simulate(args) -> int:
 
 
 def _dataset(args) -> int:
+    from diffgns.errors import InputError
+
+    check_dataset(args)
+    try:
+        return _generate(args)
+    except InputError as e:  # the writer's refusal of the --out file (e.g. another recipe)
+        if e.field.startswith(str(args.out)):
+            raise InputError(f"--out {e.field}", e.problem, e.fix) from None
+        raise
+    except BaseException as e:
+        if not isinstance(e, Exception):  # KeyboardInterrupt or Interrupted: say what is kept
+            e.detail = _kept(Path(args.out))  # type: ignore[attr-defined]
+        raise
+
+
+def _kept(out: Path) -> str:
+    """What an interrupted ``diffgns dataset`` left: the file and its trajectory count."""
+    from diffgns.io.files import partial_path, trajectory_count
+
+    for path in (out, partial_path(out)):
+        if path.exists():
+            n = trajectory_count(path)
+            return (f"{n} finished trajectories kept in {path}; run the same command to "
+                    "resume")
+    return "no trajectory was finished; nothing written"
+
+
+def _generate(args) -> int:
     if args.kind == "cylinder":
         return _dataset_cylinder(args)
     from diffgns.io.datagen import generate_columns, generate_squares
@@ -39,11 +62,8 @@ def _dataset(args) -> int:
                                 batch=args.batch, domain_length=args.domain_length,
                                 domain_height=args.domain_height)
     else:
-        kw = dict(dx=args.dx, size=args.size,
-                  friction_angle=(min(args.friction_angles), max(args.friction_angles)))
-        if args.domain_length and args.domain_height:
-            kw["domain"] = ((0.0, args.domain_length), (0.0, args.domain_height))
-        path = generate_squares(args.out, args.n, args.frames, seed=args.seed, **kw)
+        path = generate_squares(args.out, args.n, args.frames, seed=args.seed,
+                                **squares_kw(args))
     print(f"dataset written to {path}")
     return 0
 
@@ -70,56 +90,92 @@ def _dataset_cylinder(args) -> int:
 
 def register(sub) -> None:
     """Add the ``simulate`` and ``dataset`` parsers to ``sub``."""
-    s = sub.add_parser("simulate", help="run the MPM on a scene and write animation, plots, VTK")
+    s = sub.add_parser("simulate", help="run the MPM on a scene and write animation, plots, "
+                       "VTK and HDF5")
     src = s.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="scene TOML file")
-    src.add_argument("--column", action="store_true", help="a granular column collapse")
-    s.add_argument("--width", type=float, default=0.1, help="column width, m")
-    s.add_argument("--aspect-ratio", type=float, default=2.0)
-    s.add_argument("--friction-angle", type=float, default=30.0, help="degrees")
-    s.add_argument("--cells-across", type=int, default=10, help="grid cells across the column")
-    s.add_argument("--frames", type=int, default=200)
-    s.add_argument("--dtype", default=None, choices=[None, "float32", "float64"])
-    s.add_argument("--vtk-every", type=int, default=10)
-    s.add_argument("--out", default="results/simulate")
+    src.add_argument("--scene", help="scene TOML file (see scenes/)")
+    src.add_argument("--column", action="store_true",
+                     help="a granular column collapse set by the column options below")
+    s.add_argument("--width", type=finite, default=0.1, help="column width, m (default 0.1)")
+    s.add_argument("--aspect-ratio", type=finite, default=2.0,
+                   help="column height / width, dimensionless (default 2)")
+    s.add_argument("--friction-angle", type=finite, default=30.0,
+                   help="friction angle of the sand, degrees in (0, 90) (default 30)")
+    s.add_argument("--cells-across", type=count, default=10,
+                   help="grid cells across the column width, count (default 10)")
+    s.add_argument("--frames", type=count, default=200,
+                   help="frames to simulate, count >= 1 (frame dt from the scene, 2.5 ms for "
+                   "--column) (default 200)")
+    s.add_argument("--dtype", default=None, choices=["float32", "float64"],
+                   help="floating-point precision (default: JAX's, float32 unless "
+                   "JAX_ENABLE_X64 is set)")
+    s.add_argument("--vtk-every", type=count, default=10,
+                   help="write a VTK file every this many frames, count (default 10)")
+    s.add_argument("--out", default="results/simulate",
+                   help="output folder, created (default results/simulate)")
     s.set_defaults(func=_simulate)
 
     d = sub.add_parser("dataset", help="generate an HDF5 training set with the MPM or, for "
                        "--kind cylinder, the cylinder-flow CFD (resumable)")
-    d.add_argument("--kind", choices=["column", "squares", "cylinder"], required=True)
-    d.add_argument("--out", required=True, help="output .h5 file (resumes if it exists)")
-    d.add_argument("--frames", type=int, default=320)
-    d.add_argument("--aspect-ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0])
-    d.add_argument("--friction-angles", type=float, nargs="+", default=[25.0, 35.0, 45.0])
-    d.add_argument("--width", type=float, default=0.1)
-    d.add_argument("--cells-across", type=int, default=10)
-    d.add_argument("--domain-length", type=float, default=None, help="fixed box length, m")
-    d.add_argument("--domain-height", type=float, default=None, help="fixed box height, m")
-    d.add_argument("--batch", type=int, default=4, help="friction angles rolled out together")
-    d.add_argument("--n", type=int, default=10,
-                   help="number of square-flow / cylinder-flow trajectories")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--dx", type=float, default=0.02, help="cell size of square flows, m")
-    d.add_argument("--size", type=float, default=0.2, help="side of the squares, m")
+    d.add_argument("--kind", choices=["column", "squares", "cylinder"], required=True,
+                   help="column collapses over (aspect ratio x friction angle), random "
+                   "granular squares, or cylinder flows")
+    d.add_argument("--out", required=True,
+                   help="output .h5 file; built as <out>.partial and renamed when complete; "
+                   "an existing file or .partial made by the same recipe is resumed")
+    d.add_argument("--frames", type=count, default=320,
+                   help="frames per trajectory, count >= 1 (2.5 ms each for MPM kinds; "
+                   "--frame-dt for cylinder) (default 320)")
+    d.add_argument("--aspect-ratios", type=finite, nargs="+", default=[0.5, 1.0, 2.0, 3.0],
+                   help="column: height / width ratios, dimensionless > 0 (default 0.5 1 2 3)")
+    d.add_argument("--friction-angles", type=finite, nargs="+", default=[25.0, 35.0, 45.0],
+                   help="friction angles, degrees in (0, 90); column: each one, squares: "
+                   "uniform between their min and max (default 25 35 45)")
+    d.add_argument("--width", type=finite, default=0.1, help="column width, m (default 0.1)")
+    d.add_argument("--cells-across", type=count, default=10,
+                   help="column: grid cells across the width, count (default 10)")
+    d.add_argument("--domain-length", type=finite, default=None,
+                   help="fixed box length, m (default: from the runout of each column; "
+                   "squares: with --domain-height, else a 1 m box)")
+    d.add_argument("--domain-height", type=finite, default=None,
+                   help="fixed box height, m (default: 1.1 x column height + 2 cells)")
+    d.add_argument("--batch", type=count, default=4,
+                   help="column: friction angles rolled out together, count (memory; "
+                   "default 4)")
+    d.add_argument("--n", type=count, default=10,
+                   help="squares/cylinder: number of trajectories, count (default 10)")
+    d.add_argument("--seed", type=int, default=0,
+                   help="squares/cylinder: random seed, integer (default 0)")
+    d.add_argument("--dx", type=finite, default=0.02,
+                   help="squares: grid cell size, m (default 0.02)")
+    d.add_argument("--size", type=finite, default=0.2,
+                   help="squares: side of each square, m, a multiple of --dx (default 0.2)")
     c = d.add_argument_group("cylinder flow (--kind cylinder; ranges are MIN MAX, SI units)")
-    c.add_argument("--re-range", type=float, nargs=2, default=[80.0, 160.0],
-                   help="Reynolds number Ubar D / nu")
-    c.add_argument("--u-max-range", type=float, nargs=2, default=[1.0, 2.0],
-                   help="peak inflow speed Um, m/s (nu follows from Re)")
-    c.add_argument("--radius-range", type=float, nargs=2, default=[0.04, 0.06])
-    c.add_argument("--cx-range", type=float, nargs=2, default=[0.15, 0.35],
-                   help="cylinder centre x, m")
-    c.add_argument("--cy-range", type=float, nargs=2, default=[0.16, 0.25],
-                   help="cylinder centre y, m")
-    c.add_argument("--frame-dt", type=float, default=0.01, help="time between frames, s")
-    c.add_argument("--spinup", type=float, default=35.0,
-                   help="simulated time before the first stored frame, in units of D / Ubar")
-    c.add_argument("--size-cylinder", type=float, default=0.008,
-                   help="mesh edge length at the cylinder, m")
-    c.add_argument("--size-far", type=float, default=0.035, help="largest mesh edge length, m")
-    c.add_argument("--grading", type=float, default=0.25, help="mesh size growth, m/m")
-    c.add_argument("--size-wake", type=float, default=0.014,
-                   help="mesh edge length along 1 m of wake behind the cylinder, m (0: none)")
-    c.add_argument("--cfl", type=float, default=0.15,
-                   help="largest Um dt / h_min (sets the CFD time step)")
+    c.add_argument("--re-range", type=finite, nargs=2, default=[80.0, 160.0],
+                   help="Reynolds number Ubar D / nu, dimensionless (default 80 160)")
+    c.add_argument("--u-max-range", type=finite, nargs=2, default=[1.0, 2.0],
+                   help="peak inflow speed Um, m/s (nu follows from Re) (default 1 2)")
+    c.add_argument("--radius-range", type=finite, nargs=2, default=[0.04, 0.06],
+                   help="cylinder radius, m (default 0.04 0.06)")
+    c.add_argument("--cx-range", type=finite, nargs=2, default=[0.15, 0.35],
+                   help="cylinder centre x, m (default 0.15 0.35)")
+    c.add_argument("--cy-range", type=finite, nargs=2, default=[0.16, 0.25],
+                   help="cylinder centre y, m (default 0.16 0.25)")
+    c.add_argument("--frame-dt", type=finite, default=0.01,
+                   help="time between frames, s (default 0.01)")
+    c.add_argument("--spinup", type=finite, default=35.0,
+                   help="simulated time before the first stored frame, in units of D / Ubar "
+                   "(default 35)")
+    c.add_argument("--size-cylinder", type=finite, default=0.008,
+                   help="mesh edge length at the cylinder, m (default 0.008)")
+    c.add_argument("--size-far", type=finite, default=0.035,
+                   help="largest mesh edge length, m (default 0.035)")
+    c.add_argument("--grading", type=finite, default=0.25,
+                   help="mesh size growth, m/m (default 0.25)")
+    c.add_argument("--size-wake", type=finite, default=0.014,
+                   help="mesh edge length along 1 m of wake behind the cylinder, m (0: none; "
+                   "default 0.014)")
+    c.add_argument("--cfl", type=finite, default=0.15,
+                   help="largest Um dt / h_min, dimensionless (sets the CFD time step; "
+                   "default 0.15)")
     d.set_defaults(func=_dataset)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
+from diffgns.cli.checks import count, finite
 
 
 def _is_mesh_model(path) -> bool:
@@ -14,8 +14,10 @@ def _is_mesh_model(path) -> bool:
 
 
 def _rollout(args) -> int:
+    from diffgns.io.files import check_input_file
     from diffgns.models import model_path
 
+    check_input_file(args.data, "--data")
     args.model = model_path(args.model)
     if _is_mesh_model(args.model):
         return _rollout_mesh(args)
@@ -40,6 +42,8 @@ def _rollout(args) -> int:
 
 
 def _rollout_mesh(args) -> int:
+    import numpy as np
+
     from diffgns.mesh.evaluate import evaluate_trajectory, pressure_force_coefficients
     from diffgns.mesh.figures import animate_vorticity, plot_lift, vorticity
     from diffgns.mesh.train import load_cylinder, load_model
@@ -113,7 +117,8 @@ def register(sub) -> None:
     r.add_argument("--model", required=True,
                    help="model folder (params.msgpack, config.json) or shipped model name")
     r.add_argument("--data", required=True, help="dataset with reference trajectories")
-    r.add_argument("--index", type=int, default=0)
+    r.add_argument("--index", type=int, default=0,
+                   help="trajectory of --data, integer (negative: from the end; default 0)")
     r.add_argument("--out", default=None, help="folder for the MPM-vs-GNS animation")
     r.set_defaults(func=_rollout)
 
@@ -123,22 +128,31 @@ def register(sub) -> None:
     h.add_argument("--scene", default=None,
                    help="scene TOML file (instead of the column options below); the "
                    "reference MPM has --reference-refine times finer cells")
-    h.add_argument("--reference-refine", type=int, default=2,
+    h.add_argument("--reference-refine", type=count, default=2,
                    help="with --scene: reference cell size = scene dx / this")
-    h.add_argument("--aspect-ratio", type=float, default=1.75)
-    h.add_argument("--friction-angle", type=float, default=27.5, help="degrees")
-    h.add_argument("--frames", type=int, default=125, help="GNS frames")
-    h.add_argument("--warmup", type=int, default=5, help="MPM frames before the first GNS")
-    h.add_argument("--gns-frames", type=int, default=5, help="M: GNS frames per segment")
-    h.add_argument("--mpm-frames", type=int, default=2, help="K: MPM frames per segment")
-    h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"])
+    h.add_argument("--aspect-ratio", type=finite, default=1.75,
+                   help="column height / width, dimensionless (default 1.75)")
+    h.add_argument("--friction-angle", type=finite, default=27.5,
+                   help="friction angle, degrees in (0, 90) (default 27.5)")
+    h.add_argument("--frames", type=count, default=125, help="GNS frames, count (default 125)")
+    h.add_argument("--warmup", type=int, default=5,
+                   help="MPM frames before the first GNS frame, count >= 0 (default 5)")
+    h.add_argument("--gns-frames", type=count, default=5,
+                   help="M: GNS frames per segment, count (default 5)")
+    h.add_argument("--mpm-frames", type=int, default=2,
+                   help="K: MPM frames per segment, count >= 0 (default 2)")
+    h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"],
+                   help="state handed from GNS to MPM: carry the MPM state, reset it, or "
+                   "reconstruct it from the nodes (default carry)")
     h.add_argument("--particle-map", default="affine", choices=["affine", "rigid"],
                    help="how MPM particles follow their GNS node in GNS frames")
-    h.add_argument("--adaptive-tol", type=float, default=None,
+    h.add_argument("--adaptive-tol", type=finite, default=None,
                    help="energy-balance tolerance (J/kg) for adaptive switching")
-    h.add_argument("--cells-across", type=int, default=None,
-                   help="MPM resolution of GNS/hybrid runs (default: the model's data)")
-    h.add_argument("--reference-cells", type=int, default=16,
-                   help="resolution of the reference MPM")
-    h.add_argument("--out", default="results/hybrid")
+    h.add_argument("--cells-across", type=count, default=None,
+                   help="MPM cells across the column in GNS/hybrid runs, count (default: the "
+                   "model's data)")
+    h.add_argument("--reference-cells", type=count, default=16,
+                   help="cells across the column of the reference MPM, count (default 16)")
+    h.add_argument("--out", default="results/hybrid",
+                   help="output folder (default results/hybrid)")
     h.set_defaults(func=_hybrid)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import sys
 import time
 
+from diffgns.cli.checks import count, finite
+
 #: as in :mod:`diffgns.inverse.job` (repeated so that building the parser imports no JAX)
 SIMULATORS = ("mpm", "gns", "hybrid")
 OBJECTIVES = ("runout", "runout-max", "runout-frame", "deposit")
@@ -127,7 +129,10 @@ def run(args) -> int:
 def _invert(args) -> int:
     from diffgns.errors import SceneError
     from diffgns.graph.support import UnsupportedSceneError
+    from diffgns.io.files import check_input_file
 
+    if args.observation:
+        check_input_file(args.observation, "--observation")
     try:
         return run(args)
     except UnsupportedSceneError as e:
@@ -149,18 +154,23 @@ def register(sub) -> None:
                    "friction_angle=40:0:90, 'wall_mu[bottom]=0.3:0:2', aspect_ratio=2:0.25:4")
     o = p.add_mutually_exclusive_group(required=True)
     o.add_argument("--observation", help="observed trajectory, HDF5 (diffgns simulate/dataset)")
-    o.add_argument("--observed-runout", type=float, help="observed runout, m from --origin")
-    p.add_argument("--index", type=int, default=0, help="trajectory of --observation")
-    p.add_argument("--frames", type=int, default=None,
-                   help="MPM frames to simulate (default: the observation's duration)")
+    o.add_argument("--observed-runout", type=finite,
+                   help="observed runout, m from --origin")
+    p.add_argument("--index", type=int, default=0,
+                   help="trajectory of --observation, integer (default 0)")
+    p.add_argument("--frames", type=count, default=None,
+                   help="MPM frames to simulate, count (default: the observation's duration)")
     p.add_argument("--objective", default=None, choices=list(OBJECTIVES),
                    help="runout: soft final runout (default with a trajectory); runout-max: "
                    "farthest node (default with --observed-runout); runout-frame: soft runout "
                    "at --frame; deposit: deposit profile at --frame")
-    p.add_argument("--frame", type=int, default=-1, help="observed frame of the objective")
-    p.add_argument("--origin", type=float, default=None,
+    p.add_argument("--frame", type=int, default=-1,
+                   help="observed frame of the objective, integer (negative: from the end; "
+                   "default -1)")
+    p.add_argument("--origin", type=finite, default=None,
                    help="x from which runouts are measured, m (default: the left wall)")
-    p.add_argument("--simulator", default="mpm", choices=list(SIMULATORS))
+    p.add_argument("--simulator", default="mpm", choices=list(SIMULATORS),
+                   help="simulator of the forward model (default mpm)")
     p.add_argument("--model", default=None,
                    help="GNS model folder or shipped name (gns/hybrid; default gns_columns); "
                    "with the MPM: observe as this model does")
@@ -168,23 +178,29 @@ def register(sub) -> None:
                    help="GNS initial frames: the observed ones, or a differentiable MPM "
                    "start-up at the trial parameters (auto: observed when the observation "
                    "has the scene's particles)")
-    p.add_argument("--coarse-grain", type=int, default=None,
+    p.add_argument("--coarse-grain", type=count, default=None,
                    help="MPM only: particles per observed node (default 1)")
-    p.add_argument("--frame-stride", type=int, default=None,
+    p.add_argument("--frame-stride", type=count, default=None,
                    help="MPM only: MPM frames per observed frame (default 1)")
-    p.add_argument("--optimizer", default="gauss-newton", choices=["gauss-newton", "adam", "sgd"])
-    p.add_argument("--lr", type=float, default=None,
+    p.add_argument("--optimizer", default="gauss-newton", choices=["gauss-newton", "adam", "sgd"],
+                   help="optimiser (default gauss-newton)")
+    p.add_argument("--lr", type=finite, default=None,
                    help="gauss-newton: step scale (1); adam/sgd: learning rate on the "
                    "transformed parameters (0.1)")
-    p.add_argument("--max-iter", type=int, default=20)
-    p.add_argument("--step-tol", type=float, default=0.01,
+    p.add_argument("--max-iter", type=count, default=20,
+                   help="optimiser iterations at most, count (default 20)")
+    p.add_argument("--step-tol", type=finite, default=0.01,
                    help="stop when every step is below this (parameter units)")
-    p.add_argument("--gradient", default="ad", choices=["ad", "fd"])
+    p.add_argument("--gradient", default="ad", choices=["ad", "fd"],
+                   help="ad: automatic differentiation; fd: finite differences (default ad)")
     p.add_argument("--block", type=int, default=None,
                    help="frames per jax.checkpoint block (default MPM 25, GNS/hybrid 10; 0: "
                    "none)")
     p.add_argument("--truth", action="append", default=[], metavar="NAME=VALUE",
                    help="the true value when known (figures and summary error)")
-    p.add_argument("--dtype", default=None, choices=["float32", "float64"])
-    p.add_argument("--out", default="results/invert")
+    p.add_argument("--dtype", default=None, choices=["float32", "float64"],
+                   help="floating-point precision (default: JAX's, float32 unless "
+                   "JAX_ENABLE_X64 is set)")
+    p.add_argument("--out", default="results/invert",
+                   help="output folder (summary.json, figures) (default results/invert)")
     p.set_defaults(func=_invert)

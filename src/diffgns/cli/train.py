@@ -4,8 +4,19 @@ from __future__ import annotations
 
 import sys
 
+from diffgns.cli.checks import count, finite
+from diffgns.io.files import check_input_file
+
+
+def _check_inputs(args) -> None:
+    """Refuse missing or unreadable datasets before anything is created."""
+    for path in args.data:
+        check_input_file(path, "--data")
+    if args.valid:
+        check_input_file(args.valid, "--valid")
 
 def _train(args) -> int:
+    _check_inputs(args)
     from diffgns.graph.train_loop import train
     from diffgns.graph.training import TrainConfig
 
@@ -64,30 +75,52 @@ def register(sub) -> None:
     """Add the ``train`` and ``average`` parsers to ``sub``."""
     t = sub.add_parser("train", help="train a GNS (particles) or a MeshGraphNet (--kind mesh, "
                        "on a cylinder-flow dataset) (resumable)")
-    t.add_argument("--kind", choices=["particles", "mesh"], default="particles")
+    t.add_argument("--kind", choices=["particles", "mesh"], default="particles",
+                   help="particles: a GNS on MPM datasets; mesh: a MeshGraphNet on a "
+                   "cylinder-flow dataset (default particles)")
     t.add_argument("--data", nargs="+", required=True, help="training datasets (.h5 or .npz)")
-    t.add_argument("--valid", default=None, help="validation dataset for rollouts")
+    t.add_argument("--valid", default=None,
+                   help="validation dataset (.h5) for rollouts (default: none)")
     t.add_argument("--out", required=True, help="run folder (checkpoint, logs, model/)")
-    t.add_argument("--steps", type=int, default=20000)
-    t.add_argument("--batch-size", type=int, default=2)
-    t.add_argument("--lr", type=float, default=1e-3)
-    t.add_argument("--lr-final", type=float, default=1e-5)
-    t.add_argument("--lr-decay-steps", type=int, default=None)
-    t.add_argument("--radius", type=float, default=0.015, help="connectivity radius, m")
-    t.add_argument("--latent", type=int, default=128)
-    t.add_argument("--mp-steps", type=int, default=10)
-    t.add_argument("--mlp-layers", type=int, default=2)
-    t.add_argument("--noise-std", type=float, default=None,
+    t.add_argument("--steps", type=count, default=20000,
+                   help="optimiser steps, count (default 20000)")
+    t.add_argument("--batch-size", type=count, default=2,
+                   help="training samples per step, count (default 2)")
+    t.add_argument("--lr", type=finite, default=1e-3,
+                   help="initial learning rate (Adam), dimensionless (default 1e-3)")
+    t.add_argument("--lr-final", type=finite, default=1e-5,
+                   help="learning-rate floor of the exponential decay (default 1e-5)")
+    t.add_argument("--lr-decay-steps", type=count, default=None,
+                   help="steps over which the learning rate decays to --lr-final, count "
+                   "(default --steps)")
+    t.add_argument("--radius", type=finite, default=0.015,
+                   help="particles: connectivity radius, m (default 0.015)")
+    t.add_argument("--latent", type=count, default=128,
+                   help="width of the latent vectors and MLPs, count (default 128)")
+    t.add_argument("--mp-steps", type=count, default=10,
+                   help="message-passing steps, count (default 10)")
+    t.add_argument("--mlp-layers", type=count, default=2,
+                   help="hidden layers per MLP, count (default 2)")
+    t.add_argument("--noise-std", type=finite, default=None,
                    help="training noise: random walk in m (particles, default 6.7e-4) or "
                    "velocity noise in m/s (mesh, default 0.02)")
-    t.add_argument("--attention", action="store_true")
-    t.add_argument("--coarse-grain", type=int, default=1, help="MPM particles per GNS node")
-    t.add_argument("--frame-stride", type=int, default=1, help="MPM frames per GNS frame")
-    t.add_argument("--push-forward", type=int, default=0)
-    t.add_argument("--momentum-weight", type=float, default=0.0)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--validate-every", type=int, default=2000)
-    t.add_argument("--checkpoint-every", type=int, default=500)
+    t.add_argument("--attention", action="store_true",
+                   help="particles: attention-weighted message aggregation")
+    t.add_argument("--coarse-grain", type=count, default=1,
+                   help="particles: MPM particles per GNS node, count (default 1)")
+    t.add_argument("--frame-stride", type=count, default=1,
+                   help="particles: MPM frames per GNS frame, count (default 1)")
+    t.add_argument("--push-forward", type=int, default=0,
+                   help="extra unrolled steps of push-forward training, count >= 0 "
+                   "(default 0)")
+    t.add_argument("--momentum-weight", type=finite, default=0.0,
+                   help="particles: weight of the momentum-conservation loss, "
+                   "dimensionless (default 0)")
+    t.add_argument("--seed", type=int, default=0, help="random seed, integer (default 0)")
+    t.add_argument("--validate-every", type=count, default=2000,
+                   help="steps between validation rollouts, count (default 2000)")
+    t.add_argument("--checkpoint-every", type=count, default=500,
+                   help="steps between checkpoints, count (default 500)")
     t.add_argument("--init-from", default=None,
                    help="model folder to fine-tune from (same configuration, fresh optimiser)")
     t.add_argument("--no-viscosity", action="store_true",

@@ -3,10 +3,16 @@
 Sample ``i`` is always stored under key ``f"{i:05d}"``, so an interrupted run resumes by
 skipping the keys already in the file. Column collapses of one aspect ratio share their
 particle layout, so their friction angles are rolled out together under ``jax.vmap``.
+
+A new file is built as ``<path>.partial`` and renamed to ``path`` when complete; the file
+carries its recipe (:func:`column_recipe`, :func:`squares_recipe`: every argument that shapes
+the trajectories), and resuming with another recipe is refused before anything is written
+(:class:`~diffgns.io.dataset.H5TrajectoryFile`).
 """
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
@@ -19,6 +25,7 @@ from diffgns.interface import rollout
 from diffgns.io.dataset import DatasetWriter
 from diffgns.mpm import MPM
 from diffgns.mpm.solver import max_speed
+from diffgns.scene import Scene
 from diffgns.scene.builders import column_collapse, granular_squares
 from diffgns.trajectory import Trajectory
 
@@ -27,6 +34,41 @@ def column_samples(aspect_ratios, friction_angles) -> list[dict]:
     """The grid of (aspect ratio, friction angle) samples, in storage order."""
     return [dict(aspect_ratio=float(a), friction_angle=float(p))
             for a, p in itertools.product(aspect_ratios, friction_angles)]
+
+
+def column_recipe(aspect_ratios, friction_angles, n_frames: int, width: float = 0.1,
+                  cells_across: int = 10, **scene_kw) -> dict:
+    """The fingerprint of a column-collapse dataset (JSON-serialisable)."""
+    return dict(kind="column", aspect_ratios=[float(a) for a in aspect_ratios],
+                friction_angles=[float(p) for p in friction_angles], n_frames=int(n_frames),
+                width=float(width), cells_across=int(cells_across), dtype=_float_dtype(),
+                **scene_kw)
+
+
+def column_scenes(aspect_ratios, friction_angles, width: float = 0.1, cells_across: int = 10,
+                  **scene_kw) -> Iterator[tuple[dict, Scene]]:
+    """(sample, scene) of every sample of :func:`column_samples`, built (so validated) with
+    :func:`~diffgns.scene.builders.column_collapse`; raises its SceneError on the first bad
+    one."""
+    for sample in column_samples(aspect_ratios, friction_angles):
+        yield sample, column_collapse(width=width, cells_across=cells_across, **sample,
+                                      **scene_kw)
+
+
+def squares_recipe(n: int, n_frames: int, seed: int = 0, **scene_kw) -> dict:
+    """The fingerprint of a granular-squares dataset (JSON-serialisable)."""
+    return dict(kind="squares", n=int(n), n_frames=int(n_frames), seed=int(seed),
+                dtype=_float_dtype(), **scene_kw)
+
+
+def square_scenes(n: int, seed: int = 0, **scene_kw) -> Iterator[Scene]:
+    """The ``n`` scenes of :func:`generate_squares`, built (so validated) in order."""
+    for i in range(n):
+        yield granular_squares(seed=seed * 100003 + i, **scene_kw)
+
+
+def _float_dtype() -> str:
+    return str(jnp.zeros(()).dtype)
 
 
 def _traj(sim, params, pos, vel) -> Trajectory:
@@ -51,7 +93,9 @@ def generate_columns(path, aspect_ratios, friction_angles, n_frames: int, width:
     """Write column collapses over the (aspect ratio x friction angle) grid to ``path``."""
     samples = column_samples(aspect_ratios, friction_angles)
     extra = dict(kind="column", width=width, cells_across=cells_across, n_frames=n_frames)
-    with DatasetWriter(path, metadata_extra=extra) as w, \
+    recipe = column_recipe(aspect_ratios, friction_angles, n_frames, width, cells_across,
+                           **scene_kw)
+    with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w, \
             tqdm(total=len(samples), desc="column collapses", disable=not progress) as bar:
         bar.update(sum(w.has(f"{i:05d}") for i in range(len(samples))))
         for a in aspect_ratios:
@@ -84,11 +128,13 @@ def generate_squares(path, n: int, n_frames: int, seed: int = 0, progress: bool 
     """Write ``n`` granular-square flows (random 1-2 masses and velocities) to ``path``."""
     extra = dict(kind="squares", n_frames=n_frames, seed=seed)
     dx = scene_kw.get("dx", 0.02)
-    with DatasetWriter(path, metadata_extra=extra) as w:
+    recipe = squares_recipe(n, n_frames, seed, **scene_kw)
+    with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w:
+        scenes = square_scenes(n, seed, **scene_kw)
         for i in tqdm(range(n), desc="square flows", disable=not progress):
+            scene = next(scenes)
             if w.has(f"{i:05d}"):
                 continue
-            scene = granular_squares(seed=seed * 100003 + i, **scene_kw)
             sim = MPM(scene)
             traj, _ = sim.run(sim.params(), sim.init(), n_frames)
             w.write(f"{i:05d}", traj, attrs=dict(seed=seed * 100003 + i,

@@ -15,6 +15,7 @@ and acceleration ``v_t - v_{t-1}`` (m/frame^2), not m/s.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -22,9 +23,17 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns.errors import InputError
+from diffgns.io.files import (
+    _TMP_PREFIX,
+    _normalised,
+    _short,
+    check_h5_file,
+    partial_path,
+    write_text_atomic,
+)
 from diffgns.trajectory import Trajectory
 
-_TMP_PREFIX = "_incomplete_"
 _RESERVED_KEYS = frozenset({"bounds", "dim", "dt", "default_connectivity_radius", "vel_mean",
                             "vel_std", "acc_mean", "acc_std", "sequence_length",
                             "n_trajectories", "n_particles"})
@@ -125,12 +134,43 @@ class H5TrajectoryFile:
     complete groups (leftover temporary groups are removed on the next open).
     ``metadata_extra`` (JSON-serialisable) is stored in the file, so a resumed writer keeps it
     when given ``None``.
+
+    Args:
+        path: the ``.h5`` file; missing parent folders are created.
+        metadata_extra: see above.
+        recipe: JSON-serialisable description of everything that shapes the trajectories
+            (kind, frames, parameters, seed, resolution, ...), stored as the file attribute
+            ``recipe``. Reopening a file that holds trajectories with a different recipe (or
+            none) raises :class:`~diffgns.errors.InputError` naming the fields that differ,
+            before anything is written.
+        staged: a new file is written as ``<path>.partial`` (:func:`partial_path`) and
+            renamed to ``path`` when the ``with`` block ends without an exception; an
+            existing ``<path>.partial`` is resumed, an existing ``path`` is extended in place.
+
+    Leaving the ``with`` block by an exception removes a file this writer created if it holds
+    no trajectory (and the folders it created, if empty); otherwise the file stays, valid and
+    resumable.
     """
 
-    def __init__(self, path: str | Path, metadata_extra: dict | None = None):
-        self.path = Path(path)
+    def __init__(self, path: str | Path, metadata_extra: dict | None = None,
+                 recipe: dict | None = None, staged: bool = False):
+        self.final_path = Path(path)
+        self.path = self.final_path
+        if staged and not self.final_path.exists():
+            self.path = partial_path(self.final_path)
+        self._created = not self.path.exists()
+        self._new_dirs = [d for d in reversed(self.path.parents) if not d.exists()]
+        if not self._created:
+            check_h5_file(self.path, str(self.path))
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = h5py.File(self.path, "a")
+        try:
+            if recipe is not None:
+                self._check_recipe(recipe)
+        except BaseException:
+            self._file.close()
+            self._discard_if_empty()
+            raise
         for name in [k for k in self._file if k.startswith(_TMP_PREFIX)]:
             del self._file[name]  # left by an interrupted write
         if metadata_extra is None:
@@ -138,6 +178,37 @@ class H5TrajectoryFile:
         self.metadata_extra = dict(metadata_extra)
         self._file.attrs["metadata_extra"] = json.dumps(self.metadata_extra, default=str)
         self._file.flush()
+
+    def _check_recipe(self, recipe: dict) -> None:
+        """Refuse a file whose trajectories were made by another recipe; store ``recipe``."""
+        want = _normalised(recipe)
+        stored = self._file.attrs.get("recipe")
+        if self.keys():
+            if stored is None:
+                raise InputError(str(self.path), "holds trajectories but no recipe fingerprint "
+                                 "(written by an older diffgns), so a resume cannot be checked",
+                                 "delete it or write to another file")
+            have = json.loads(stored)
+            diff = [f"{k} {_short(want.get(k))} (file: {_short(have.get(k))})"
+                    for k in sorted(set(want) | set(have)) if want.get(k) != have.get(k)]
+            if diff:
+                raise InputError(str(self.path), "was made by a different recipe: "
+                                 + ", ".join(diff),
+                                 "rerun with the file's arguments to resume, or write to "
+                                 "another file")
+        self._file.attrs["recipe"] = json.dumps(want)
+
+    def _discard_if_empty(self) -> None:
+        """Remove the file and the folders this writer created if it holds no trajectory."""
+        if not self._created or not self.path.exists():
+            return
+        with h5py.File(self.path, "r") as f:
+            empty = not any(not k.startswith(_TMP_PREFIX) for k in f)
+        if empty:
+            self.path.unlink()
+            for d in reversed(self._new_dirs):
+                if d.exists() and not any(d.iterdir()):
+                    d.rmdir()
 
     def keys(self) -> list[str]:
         """Sorted keys of the stored trajectories."""
@@ -176,8 +247,13 @@ class H5TrajectoryFile:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
         self.close()
+        if exc_type is not None:
+            self._discard_if_empty()
+        elif self.path != self.final_path:
+            os.replace(self.path, self.final_path)
+            self.path = self.final_path
 
 
 class DatasetWriter(H5TrajectoryFile):
@@ -188,12 +264,14 @@ class DatasetWriter(H5TrajectoryFile):
     Args:
         path: the ``.h5`` file; parent folders are created.
         metadata_extra: extra JSON-serialisable entries for the metadata file.
+        recipe, staged: see :class:`H5TrajectoryFile`.
     """
 
-    def __init__(self, path: str | Path, metadata_extra: dict | None = None):
+    def __init__(self, path: str | Path, metadata_extra: dict | None = None,
+                 recipe: dict | None = None, staged: bool = False):
         clash = sorted(_RESERVED_KEYS.intersection(metadata_extra or {}))
         _require(not clash, f"metadata_extra may not override computed keys {clash}")
-        super().__init__(path, metadata_extra)
+        super().__init__(path, metadata_extra, recipe=recipe, staged=staged)
 
     def _next_index(self) -> int:
         indices = [int(k) for k in self.keys() if k.isdigit()]
@@ -244,8 +322,9 @@ class DatasetWriter(H5TrajectoryFile):
             "sequence_length": [int(sh[0]) for sh in shapes], "n_trajectories": len(keys),
             "n_particles": [int(sh[1]) for sh in shapes], **self.metadata_extra,
         }
-        metadata_path(self.path).write_text(json.dumps(meta, indent=2, default=str))
+        write_text_atomic(metadata_path(self.final_path), json.dumps(meta, indent=2, default=str))
         return meta
+
 
 def read_metadata(path: str | Path) -> dict:
     """Read the metadata of a dataset.

@@ -12,6 +12,7 @@ from tqdm import tqdm
 from diffgns import metrics
 from diffgns.io import figures as viz
 from diffgns.io.dataset import DatasetWriter
+from diffgns.io.files import staged_dir
 from diffgns.mpm import MPM
 from diffgns.trajectory import Trajectory
 
@@ -56,28 +57,37 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
 def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
                   anim_every: int = 4, origin: float = 0.0, L0: float | None = None,
                   extra: dict | None = None) -> dict:
-    """Write animation.gif, runout.png, vtk/ (ParaView), trajectory.h5 and summary.json."""
+    """Write animation.gif, runout.png, deposit.png, vtk/ (ParaView), trajectory.h5 and
+    summary.json to the folder ``out``.
+
+    Everything is written to a temporary folder beside ``out`` and moved into ``out`` only
+    when all of it is written (:func:`diffgns.io.files.staged_dir`), so a failed or
+    interrupted call leaves ``out`` as it was. Returns the summary (runout and deposit front
+    in m; ``files`` lists the paths in ``out``).
+    """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     x = np.asarray(traj.positions)
     run = np.asarray(metrics.runout(x, origin=origin))
     front = float(metrics.deposit_front(traj.positions[-1], scene.dx, scene.dx, origin=origin))
-    files = {
-        "animation": viz.animate(traj, out / "animation.gif", every=anim_every,
-                                 color="speed"),
-        "runout_plot": viz.plot_runout(np.asarray(traj.times), run, out / "runout.png", L0=L0),
-        "deposit_plot": viz.plot_deposits([(x[0], "initial"), (x[-1], "final")],
-                                          out / "deposit.png", scene.domain),
-    }
-    vtk = viz.write_vtk(traj, out / "vtk", every=vtk_every)
-    files["vtk_collection"] = vtk[-1]
-    with DatasetWriter(out / "trajectory.h5") as w:
-        w.write("00000", traj)
-        w.finalize(connectivity_radius=2.0 * scene.dx)
-    summary = dict(final_runout_m=float(run[-1]), deposit_front_m=front,
-                   frames=int(traj.n_frames), particles=int(traj.n_particles),
-                   files={k: str(v) for k, v in files.items()}, **(extra or {}))
-    if L0:
-        summary["normalised_runout_front"] = (front - L0) / L0
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    with staged_dir(out) as tmp:
+        files = {
+            "animation": viz.animate(traj, tmp / "animation.gif", every=anim_every,
+                                     color="speed"),
+            "runout_plot": viz.plot_runout(np.asarray(traj.times), run, tmp / "runout.png",
+                                           L0=L0),
+            "deposit_plot": viz.plot_deposits([(x[0], "initial"), (x[-1], "final")],
+                                              tmp / "deposit.png", scene.domain),
+        }
+        vtk = viz.write_vtk(traj, tmp / "vtk", every=vtk_every)
+        files["vtk_collection"] = vtk[-1]
+        with DatasetWriter(tmp / "trajectory.h5") as w:
+            w.write("00000", traj)
+            w.finalize(connectivity_radius=2.0 * scene.dx)
+        files = {k: out / Path(v).relative_to(tmp) for k, v in files.items()}
+        summary = dict(final_runout_m=float(run[-1]), deposit_front_m=front,
+                       frames=int(traj.n_frames), particles=int(traj.n_particles),
+                       files={k: str(v) for k, v in files.items()}, **(extra or {}))
+        if L0:
+            summary["normalised_runout_front"] = (front - L0) / L0
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary

@@ -1,0 +1,184 @@
+"""The command line's validation layer: argument types, one-line errors, recipe checks,
+interruptions and output clean-up. Imports no JAX (the scene checks import it when a command
+runs).
+
+Every refusal is one line on stderr, ``diffgns: error: <field>: <what is wrong>; <fix>``, with
+exit status 2, before anything is written. Dataset recipes are checked by building their
+scenes with :mod:`diffgns.scene.builders` (so :mod:`diffgns.scene.checks` and the material
+checks apply, the same rules as scene files); this module adds only what a scene cannot
+know: counts are whole numbers >= 1 and numbers are finite.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from diffgns.errors import InputError, Interrupted, SceneError
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line: ``diffgns: error: ...`` (exit 2)."""
+
+    def error(self, message: str):
+        if message.startswith("argument "):
+            message = message[len("argument "):]
+        if ";" not in message:
+            message += f"; see `{self.prog} --help`"
+        self.exit(2, f"diffgns: error: {message}\n")
+
+
+def count(text: str) -> int:
+    """argparse type: a whole number >= 1 (frames, trajectories, steps, ...)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number; give a count "
+                                         ">= 1") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not a count >= 1; give at least 1")
+    return value
+
+
+def finite(text: str) -> float:
+    """argparse type: a finite number (no nan or inf)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number; give a finite "
+                                         "number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number; give a finite "
+                                         "number")
+    return value
+
+
+#: words of scene/builder messages -> the dataset option that sets them, with its fix
+_OPTIONS = {
+    "friction_angle": ("--friction-angles", "give friction angles in degrees in (0, 90)"),
+    "aspect_ratio": ("--aspect-ratios", "give column height / width ratios > 0, whole "
+                     "multiples of 1 / --cells-across"),
+    "width": ("--width", "give the column width in m, > 0"),
+    "domain_height": ("--domain-height", "give a box height in m above the tallest column"),
+    "domain_length": ("--domain-length", "give a box length in m"),
+    "Scene.dx": ("--dx", "give a cell size in m that divides the 1 m box"),
+    "size": ("--size", "give a square side in m, a multiple of --dx that fits the box"),
+    "Rectangle": ("--size", "give a square side in m, a multiple of --dx that fits the box"),
+}
+
+
+#: the same for ``diffgns simulate --column``
+_SIMULATE_OPTIONS = {
+    "friction_angle": ("--friction-angle", "give a friction angle in degrees in (0, 90)"),
+    "aspect_ratio": ("--aspect-ratio", "give a column height / width ratio > 0, a whole "
+                     "multiple of 1 / --cells-across"),
+    "width": ("--width", "give the column width in m, > 0"),
+}
+
+
+def _scene_refusal(e: Exception, default: str, fix: str,
+                   options: dict | None = None) -> InputError:
+    """An InputError naming the options (``options``: message word -> (option, fix)) a
+    scene/builder error ``e`` is about."""
+    msg = str(e) if not isinstance(e, ZeroDivisionError) else f"{default} is 0 ({e})"
+    hits = [(opt, f) for word, (opt, f) in (options or _OPTIONS).items() if word in msg]
+    field = ", ".join(dict.fromkeys(opt for opt, _ in hits)) or default
+    if ";" in msg:
+        return InputError(field, msg)
+    return InputError(field, msg, hits[0][1] if hits else fix)
+
+
+def check_dataset(args) -> None:
+    """Build every scene of the ``diffgns dataset`` recipe (which validates it); raise an
+    InputError naming the option at fault. Cylinder recipes are checked by their own
+    dataclasses in :mod:`diffgns.mesh.datagen`."""
+    out = Path(args.out)
+    if out.exists() and out.is_dir():
+        raise InputError("--out", f"{out} is a folder", "give the path of an .h5 file")
+    if args.kind == "column":
+        from diffgns.io.datagen import column_scenes
+
+        try:
+            for _ in column_scenes(args.aspect_ratios, args.friction_angles, width=args.width,
+                                   cells_across=args.cells_across,
+                                   domain_length=args.domain_length,
+                                   domain_height=args.domain_height):
+                pass
+        except (SceneError, ValueError, ArithmeticError) as e:
+            raise _scene_refusal(e, "--aspect-ratios", "check the column options") from None
+    elif args.kind == "squares":
+        from diffgns.io.datagen import square_scenes
+
+        try:
+            for _ in square_scenes(args.n, args.seed, **squares_kw(args)):
+                pass
+        except ZeroDivisionError as e:
+            raise _scene_refusal(e, "--dx", "give a cell size in m > 0") from None
+        except SceneError as e:
+            raise _scene_refusal(e, "--size", "check the square options") from None
+        except ValueError as e:  # numpy: no room to place a square
+            raise InputError("--size, --dx", f"squares of {args.size:g} m do not fit the box "
+                             f"with cells of {args.dx:g} m ({e})",
+                             "give a smaller --size") from None
+
+
+def check_simulate(args):
+    """The scene of ``diffgns simulate`` (built, so validated) and its reference length
+    (the column width, m, or None); an InputError names the option at fault."""
+    from diffgns.scene.builders import column_collapse
+    from diffgns.scene.files import load_scene
+
+    if args.scene:
+        try:
+            return load_scene(args.scene), None
+        except SceneError as e:
+            raise InputError(f"--scene {args.scene}", str(e)) from None
+    try:
+        scene = column_collapse(width=args.width, aspect_ratio=args.aspect_ratio,
+                                friction_angle=args.friction_angle,
+                                cells_across=args.cells_across)
+    except (SceneError, ValueError, ArithmeticError) as e:
+        raise _scene_refusal(e, "--aspect-ratio", "check the column options",
+                             _SIMULATE_OPTIONS) from None
+    return scene, args.width
+
+
+def squares_kw(args) -> dict:
+    """Scene keywords of a squares recipe from the ``dataset`` arguments."""
+    kw = dict(dx=args.dx, size=args.size,
+              friction_angle=(min(args.friction_angles), max(args.friction_angles)))
+    if args.domain_length and args.domain_height:
+        kw["domain"] = ((0.0, args.domain_length), (0.0, args.domain_height))
+    return kw
+
+
+@contextmanager
+def signals_as_exceptions() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Interrupted` while the block runs (SIGINT already raises
+    KeyboardInterrupt), so clean-up and exit status 143 follow the same path as Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
+
+
+def report_interrupt(e: BaseException, detail: str = "") -> int:
+    """Print the one-line interruption message; the exit status (130 SIGINT, 143 SIGTERM)."""
+    signum = e.signum if isinstance(e, Interrupted) else int(signal.SIGINT)
+    name = signal.Signals(signum).name
+    print(f"diffgns: interrupted by {name}" + (f"; {detail}" if detail else ""),
+          file=sys.stderr)
+    return 128 + signum
