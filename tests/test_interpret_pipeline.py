@@ -82,7 +82,7 @@ def test_training_recipe_runs_its_stages_in_turn(tmp_path, monkeypatch):
 def test_pipeline_recovers_spring_law(tmp_path, variant):
     res = pipeline.run("spring", tmp_path, tmp_path / "data",
                        model=str(pipeline.model_folder(MODELS, "spring", variant)),
-                       sr_seconds=120, progress=False, variant=variant)
+                       sr_generations=100, progress=False, variant=variant)
     assert res["check"]["equivalent"], res["check"]
     assert abs(res["check"]["k"] - 100) < 1.0
     assert res["sr_force"]["selected"]["consistent"]
@@ -110,3 +110,71 @@ def test_inverse_square_law_check(text, gauge, equivalent):
     out = pipeline.check_law("inverse_square", expr, pipeline.SYSTEMS["inverse_square"], X,
                              gauge)
     assert out["equivalent"] is equivalent, out
+
+
+def _symbolic(tmp_path, name, law="both"):
+    """``diffgns symbolic`` (shipped L1 networks) on a reduced budget; returns its printed
+    output without the timing lines, and each law's fronts and check."""
+    import io
+    import json
+    from contextlib import redirect_stdout
+
+    from diffgns.cli import main
+
+    out = tmp_path / name
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        code = main(["symbolic", "--law", law, "--out", str(out),
+                     "--data-dir", str(tmp_path / "data"),
+                     "--sr-samples", "400", "--sr-generations", "4", "--sr-population", "60"])
+    assert code in (0, 1)  # 1: a law not recovered on this tiny budget, not an error
+    text = "\n".join(line for line in buf.getvalue().splitlines()
+                     if not line.endswith(f"results in {out / line.split(':')[0]}"))
+    fronts = {}
+    for each in pipeline.SYSTEMS if law == "both" else [law]:
+        res = json.loads((out / each / "results.json").read_text())
+        fronts[each] = [(res[f"sr_{k}"]["front"], res[f"sr_{k}"]["selected"])
+                        for k in ("force", "component")] + [res["check"]]
+    return text, fronts
+
+
+def _loaded(fn):
+    """``fn()`` while a busy process competes for the CPU."""
+    import subprocess
+    import sys
+
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        return fn()
+    finally:
+        busy.kill()
+        busy.wait()
+
+
+def test_symbolic_command_spring_is_reproducible_under_load(tmp_path):
+    """Fast variant: the spring law twice, the second time beside a busy process."""
+    first = _symbolic(tmp_path, "a", "spring")
+    assert _loaded(lambda: _symbolic(tmp_path, "b", "spring")) == first
+    assert first[1]["spring"][0][1]["constants"]  # the selection carries its constants
+
+
+@pytest.mark.slow
+def test_symbolic_command_gives_the_same_answer_twice_and_under_load(tmp_path):
+    """The whole command (both laws) twice in a row and once beside a busy process:
+    identical fronts, selections, fitted constants (full precision), checks and output."""
+    first = _symbolic(tmp_path, "a")
+    assert _symbolic(tmp_path, "b") == first
+    assert _loaded(lambda: _symbolic(tmp_path, "c")) == first
+    text, fronts = first
+    for law, (force, _component, check) in fronts.items():
+        assert force[1]["selected"] and force[1]["constants"], law
+        assert check["tolerance"] == pipeline.EQUIV_TOL
+    assert text.count("relative tolerance 0.01") == 2 and "selected (spring, force)" in text
+
+
+def test_symbolic_command_refuses_a_bad_budget(tmp_path, capsys):
+    from diffgns.cli import main
+
+    assert main(["symbolic", "--out", str(tmp_path), "--sr-generations", "0"]) == 2
+    assert "--sr-generations must be at least 1" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written

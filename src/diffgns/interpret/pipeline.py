@@ -64,6 +64,13 @@ VARIANTS = {
                                                 node_l2=0.0), (8000,)),
 }
 FRAMES = {"spring": 500, "inverse_square": 500}
+# symbolic-regression budget per search: counts, never seconds, so that the selection does not
+# depend on the machine (SR_MAX_SECONDS is only a safety cap that raises)
+SR_GENERATIONS = 200
+SR_POPULATION = 1000
+SR_MAX_SECONDS = 3600.0
+EQUIV_TOL = 0.01
+"""Relative tolerance of :func:`check_law` (1%)."""
 FORCE_FEATURES = ["d", "m_i", "m_j", "r_i", "r_j"]
 COMPONENT_FEATURES = ["dx", "dy", "d", "m_i", "m_j", "r_i", "r_j"]
 _COLUMNS = nbody_data.EDGE_FEATURES
@@ -81,18 +88,26 @@ def datasets(law: str, data_dir: str | Path, n_train: int = 30, n_test: int = 10
     return train, test
 
 
-def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray, gauge: str = "force") -> dict:
+def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray, gauge: str = "force",
+              tol: float = EQUIV_TOL) -> dict:
     """Compare a selected ``force`` expression with the true law on the samples X (n, 5).
 
     In the ``"acceleration"`` gauge the expression is F / m_i; it is multiplied by m_i first.
-    For either law an additive constant must stay below 1% of the mean magnitude of the true
-    law on X (``offset_rel``). Spring: coefficients of d, r_i, r_j equal to k, -k, -k within
-    1%, k within 1% of the truth. Inverse square: the expression minus its additive constant
-    must be ``G' m_i m_j / d^2`` (spread of the ratio below 1%) with G' within 1% of G.
+    Every test is relative, with tolerance ``tol`` (:data:`EQUIV_TOL`, 1%), recorded in the
+    output with the rule. For either law an additive constant must stay below ``tol`` of the
+    mean magnitude of the true law on X (``offset_rel``). Spring: the expression must be
+    affine in d, r_i, r_j only, with the coefficients of r_i and r_j within ``tol`` of -k
+    (k the coefficient of d) and k within ``tol`` of the truth. Inverse square: the
+    expression minus its additive constant must be ``G' m_i m_j / d^2`` (relative spread of
+    the ratio below ``tol``) with G' within ``tol`` of G.
     """
     import sympy
 
-    out = dict(expression=str(expr.evalf(6)), gauge=gauge)
+    rule = ("affine in d, r_i, r_j; coefficients of r_i, r_j within tol of -k; k within tol "
+            "of the truth; constant below tol of the mean |F|" if law == "spring" else
+            "G' m_i m_j / d^2 plus a constant; ratio spread, |G' - G| / |G| and constant "
+            "below tol (constant relative to the mean |F|)")
+    out = dict(expression=str(expr.evalf(6)), gauge=gauge, tolerance=tol, rule=rule)
     m_i = sympy.Symbol("m_i", real=True)
     offset, law_part = expr.as_coeff_Add()  # an additive constant, in the gauge's unit
     if gauge == "acceleration":
@@ -109,8 +124,8 @@ def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray, gauge: str = "for
         scale = float(np.mean(np.abs(cfg.k * (X[:, 0] - X[:, 3] - X[:, 4]))))
         out["offset_rel"] = abs(coef["1"]) / scale
         out["equivalent"] = bool(
-            abs(coef["r_i"] / -k - 1) < 0.01 and abs(coef["r_j"] / -k - 1) < 0.01
-            and out["offset_rel"] < 0.01 and out["k_rel_error"] < 0.01)
+            abs(coef["r_i"] / -k - 1) < tol and abs(coef["r_j"] / -k - 1) < tol
+            and out["offset_rel"] < tol and out["k_rel_error"] < tol)
         return out
     sym = {n: sympy.Symbol(n, real=True) for n in FORCE_FEATURES}
     f = sympy.lambdify([sym[n] for n in FORCE_FEATURES], law_part, "numpy")
@@ -124,8 +139,8 @@ def check_law(law: str, expr, cfg: NBodyConfig, X: np.ndarray, gauge: str = "for
     out["G_rel_error"] = abs(out["G"] - cfg.G) / abs(cfg.G)
     out["ratio_spread"] = float(np.std(ratio) / abs(np.mean(ratio)))
     out["uses"] = sorted(str(s) for s in law_part.free_symbols)
-    out["equivalent"] = bool(out["ratio_spread"] < 0.01 and out["G_rel_error"] < 0.01
-                             and out["offset_rel"] < 0.01
+    out["equivalent"] = bool(out["ratio_spread"] < tol and out["G_rel_error"] < tol
+                             and out["offset_rel"] < tol
                              and set(out["uses"]) == {"d", "m_i", "m_j"})
     return out
 
@@ -187,32 +202,31 @@ def train_network(samples: dict, out: str | Path, variant: str, train_steps: int
     return net, norm, params
 
 
-def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: str | None = None,
-        train_steps: int | None = None, sr_samples: int = 5000, sr_seconds: int = 240,
-        seed: int = 0, n_threads: int = 1, progress: bool = True,
-        variant: str = "l1") -> dict:
-    """The whole pipeline for ``law`` ("spring" or "inverse_square"); returns the results.
+def regression_targets(law: str, data_dir: str | Path = "data/nbody", model: str | None = None,
+                       out: str | Path | None = None, train_steps: int | None = None,
+                       sr_samples: int = 5000, seed: int = 0, progress: bool = True,
+                       variant: str = "l1") -> tuple[dict, dict]:
+    """Data, network and premise of ``law``: returns (results so far, targets), where targets
+    maps ``force`` / ``component`` to (X (n, p), y (n,), feature names, unit of y or None).
 
-    ``model``: a saved message network; None trains the ``variant`` network first."""
+    ``model``: a saved message network; None trains the ``variant`` network into
+    ``out``/train first. Every random choice is seeded from ``seed``."""
     if law not in SYSTEMS:
         raise ValueError(f"law must be one of {sorted(SYSTEMS)}, got {law!r}")
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {sorted(VARIANTS)}, got {variant!r}")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    cfg = SYSTEMS[law]
     train_path, test_path = datasets(law, data_dir, progress=progress)
     train_samples = nbody_data.edge_samples(*nbody_data.load(train_path))
     test_samples = nbody_data.edge_samples(*nbody_data.load(test_path))
     if model is not None:
         net, norm, params, _ = message_net.load(model)
     else:
-        net, norm, params = train_network(train_samples, out / "train", variant, train_steps,
-                                          seed, progress)
+        net, norm, params = train_network(train_samples, Path(out or ".") / "train", variant,
+                                          train_steps, seed, progress)
     tr = messages.edge_messages(net, norm, params, train_samples, 50000, seed, True)
     te_all = messages.edge_messages(net, norm, params, test_samples, 10000, seed + 1)
     te = messages.edge_messages(net, norm, params, test_samples, None, seed + 2, True)
-    res = dict(law=law, model=model, msg_dim=net.cfg.msg_dim, system=dict(cfg.__dict__),
+    res = dict(law=law, model=model, msg_dim=net.cfg.msg_dim, system=dict(SYSTEMS[law].__dict__),
                premise_all_edges=messages.summarise(tr, te_all),
                premise_regression_edges=messages.summarise(tr, te))
     off = np.linalg.norm(te_all["force"], axis=-1) == 0
@@ -234,17 +248,38 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
         "component": (_columns(sub, COMPONENT_FEATURES), sub["messages"][:, top[0]],
                       COMPONENT_FEATURES, None),
     }
+    return res, targets
+
+
+def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: str | None = None,
+        train_steps: int | None = None, sr_samples: int = 5000,
+        sr_generations: int = SR_GENERATIONS, sr_population: int = SR_POPULATION,
+        sr_max_seconds: float | None = SR_MAX_SECONDS, seed: int = 0, n_threads: int = 1,
+        progress: bool = True, variant: str = "l1") -> dict:
+    """The whole pipeline for ``law`` ("spring" or "inverse_square"); returns the results.
+
+    ``model``: a saved message network; None trains the ``variant`` network first. Each of
+    the two searches runs ``sr_generations`` generations of ``sr_population`` expressions
+    with pyoperon seeded by ``seed``; ``sr_max_seconds`` is a safety cap per search that
+    raises :class:`.symbolic.BudgetError` (it never shortens a search silently)."""
+    out = Path(out)
+    res, targets = regression_targets(law, data_dir, model, out, train_steps, sr_samples, seed,
+                                      progress, variant)
+    out.mkdir(parents=True, exist_ok=True)
+    gauge = res["premise_all_edges"]["gauge"]
     fronts, tables = {}, []
     for name, (X, y, names, unit) in targets.items():
         front, best, info = symbolic.regress(
             X, y, names, {n: EDGE_UNITS[n] for n in names}, unit, seed=seed,
-            n_threads=n_threads, max_seconds=sr_seconds)
+            n_threads=n_threads, generations=sr_generations, population=sr_population,
+            safety_seconds=sr_max_seconds)
         fronts[name] = front
         res[f"sr_{name}"] = dict(info, front=[c.row() for c in front], selected=best.row())
         tables.append(front_table(front, f"{law}: {name} ({info['samples']} test edges, "
-                                         f"{info['seconds']:.0f} s)"))
+                                         f"{info['generations']} generations of "
+                                         f"{info['population']}, seed {seed})"))
         if name == "force":
-            res["check"] = check_law(law, best.expr, cfg, X, gauge)
+            res["check"] = check_law(law, best.expr, SYSTEMS[law], X, gauge)
     (out / "fronts.md").write_text("\n".join(tables))
     plot_fronts(fronts, out / "front.png")
     (out / "results.json").write_text(json.dumps(res, indent=2, default=str))
@@ -253,9 +288,12 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
 
 def add_arguments(parser) -> None:
     """Command-line options of ``diffgns symbolic`` / ``examples/symbolic_regression.py``."""
-    parser.add_argument("--law", choices=[*SYSTEMS, "both"], default="both")
-    parser.add_argument("--out", default="results/symbolic")
-    parser.add_argument("--data-dir", default="data/nbody")
+    parser.add_argument("--law", choices=[*SYSTEMS, "both"], default="both",
+                        help="force law to recover (default: both)")
+    parser.add_argument("--out", default="results/symbolic",
+                        help="output folder: <out>/<law>/fronts.md, front.png, results.json")
+    parser.add_argument("--data-dir", default="data/nbody",
+                        help="n-body datasets, generated (seeded) if missing")
     parser.add_argument("--variant", choices=sorted(VARIANTS), default="l1",
                         help="message network: L1-penalised, dimension 100 (models/"
                              "message_net_<law>_l1), or bottleneck, dimension 2 "
@@ -267,33 +305,68 @@ def add_arguments(parser) -> None:
                              "(its recipe: 100,000 steps for l1, 8,000 for bottleneck)")
     parser.add_argument("--train-steps", type=int, default=None,
                         help="train this many steps in one stage instead of the recipe")
-    parser.add_argument("--sr-samples", type=int, default=5000)
-    parser.add_argument("--sr-seconds", type=int, default=240)
+    parser.add_argument("--sr-samples", type=int, default=5000,
+                        help="test edges given to each symbolic regression (default 5000)")
+    parser.add_argument("--sr-generations", type=int, default=SR_GENERATIONS,
+                        help=f"generations per search (default {SR_GENERATIONS}); the search "
+                             "budget is a count, so the answer does not depend on the machine")
+    parser.add_argument("--sr-population", type=int, default=SR_POPULATION,
+                        help=f"expressions per generation (default {SR_POPULATION})")
+    parser.add_argument("--sr-max-seconds", type=float, default=SR_MAX_SECONDS,
+                        help=f"safety cap per search in s (default {SR_MAX_SECONDS:g}): a "
+                             "search reaching it stops the command with an error instead of "
+                             "returning a machine-dependent answer")
     parser.add_argument("--threads", type=int, default=1,
-                        help="pyoperon threads (results depend on it, as on --seed)")
-    parser.add_argument("--seed", type=int, default=0)
+                        help="pyoperon threads (default 1; results are reproducible with 1 "
+                             "and depend on the count, as on --seed)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of every random choice: edge sampling and the searches")
+
+
+def _positive(args) -> str | None:
+    for flag in ("sr_samples", "sr_generations", "sr_population", "threads"):
+        if getattr(args, flag) < 1:
+            return (f"--{flag.replace('_', '-')} must be at least 1, got "
+                    f"{getattr(args, flag)}")
+    if args.sr_max_seconds <= 0:
+        return f"--sr-max-seconds must be positive, got {args.sr_max_seconds:g}"
+    return None
 
 
 def main(args) -> int:
     """Run the pipeline for the chosen law(s) and print the fronts and checks."""
+    import sys
     import time
 
+    problem = _positive(args)
+    if problem:
+        print(f"diffgns: error: {problem}", file=sys.stderr)
+        return 2
     laws = list(SYSTEMS) if args.law == "both" else [args.law]
     summary = {}
     for law in laws:
         t0 = time.perf_counter()
         model = None if args.train else str(model_folder(args.models, law, args.variant))
-        res = run(law, Path(args.out) / law, args.data_dir, model, args.train_steps,
-                  args.sr_samples, args.sr_seconds, args.seed, args.threads,
-                  variant=args.variant)
+        try:
+            res = run(law, Path(args.out) / law, args.data_dir, model, args.train_steps,
+                      args.sr_samples, args.sr_generations, args.sr_population,
+                      args.sr_max_seconds, args.seed, args.threads, variant=args.variant)
+        except symbolic.BudgetError as err:
+            print(f"diffgns: error: {law}: {err}", file=sys.stderr)
+            return 2
         seconds = time.perf_counter() - t0
         print((Path(args.out) / law / "fronts.md").read_text())
         p = res["premise_all_edges"]
         print(f"premise ({p['n_test_edges']} test edges): R^2 of the top components on the "
               f"true force {[round(r, 4) for r in p['r2_top']]}")
-        print(f"check against the true law: {json.dumps(res['check'])}")
+        check = res["check"]
+        print(f"selected ({law}, force): {res['sr_force']['selected']['expression']}")
+        print(f"check against the true law (relative tolerance {check['tolerance']:g}: "
+              f"{check['rule']}): {json.dumps(check)}")
         print(f"{law}: {seconds:.0f} s; results in {Path(args.out) / law}")
-        summary[law] = dict(seconds=seconds, check=res["check"], r2_top=p["r2_top"])
+        summary[law] = dict(seconds=seconds, check=check, r2_top=p["r2_top"],
+                            selected={k: res[f"sr_{k}"]["selected"]["expression"]
+                                      for k in ("force", "component")})
     (Path(args.out) / "summary.json").write_text(json.dumps(summary, indent=2))
     ok = all(s["check"].get("equivalent") for s in summary.values())
     return 0 if ok else 1

@@ -29,9 +29,14 @@ error and length (NSGA-II). We then
    complexity, ``-dlog(MAE)/dc`` between consecutive front members, among the dimensionally
    consistent ones when there are any.
 
-Genetic programming is stochastic: results depend on the seed and on the thread count, which
-are both parameters here, and, when ``max_seconds`` stops the search before ``generations``
-does, on the speed of the machine (tests therefore bound the search by generations).
+Genetic programming is stochastic, but every source of randomness here is seeded: pyoperon's
+generator by ``seed``, and the search is stopped by counts (``generations``, ``population``,
+``max_evaluations``), never by time, so a given seed and thread count select the same
+expression with the same constants on a fast or a slow, idle or loaded machine (tested with
+one thread; with several, operon's threads share work in an order that is not guaranteed).
+A wall-clock ``safety_seconds`` only caps a runaway search, and raises :class:`BudgetError`
+rather than return a time-dependent front. Results do depend on the seed, the thread count
+and the budget, which are all parameters.
 """
 from __future__ import annotations
 
@@ -47,6 +52,8 @@ sympy = require("sympy", "symbolic")
 
 OPERATORS = "add,sub,mul,div,fmin,fmax,pow,exp,log,constant,variable"
 _HEAVY = ("Pow", "Exp", "Log")
+MAX_EVALUATIONS = 10**7
+"""Default cap on fitness evaluations per search (a count, like the generations)."""
 
 
 @dataclasses.dataclass
@@ -62,9 +69,11 @@ class Candidate:
     score: float = 0.0
     selected: bool = False
     snapped: bool = False
+    constants: tuple[float, ...] = ()  # the tree's fitted coefficients, full precision
 
     def row(self) -> dict:
-        return dict(expression=str(self.expr.evalf(5)), complexity=self.complexity,
+        return dict(expression=str(self.expr.evalf(5)), model=self.text,
+                    constants=list(self.constants), complexity=self.complexity,
                     mae=self.mae, score=self.score, consistent=self.consistent,
                     dimensions=self.dim_note, selected=self.selected, snapped=self.snapped)
 
@@ -213,16 +222,27 @@ def select(front: list[Candidate], prefer_consistent: bool = True) -> Candidate:
     return best
 
 
+class BudgetError(RuntimeError):
+    """A search hit its wall-clock safety cap before its generation or evaluation budget."""
+
+
 def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str],
             target_unit: str | None, seed: int = 0, n_threads: int = 1,
             generations: int = 300, population: int = 1000, max_length: int = 30,
-            max_seconds: int = 300, snap_tol: float = 0.1
-            ) -> tuple[list[Candidate], Candidate, dict]:
+            max_evaluations: int = MAX_EVALUATIONS, safety_seconds: float | None = 3600.0,
+            snap_tol: float = 0.1) -> tuple[list[Candidate], Candidate, dict]:
     """Run pyoperon on (X (n, p), y (n,)); returns (front, selected, run info).
 
     ``names`` label the columns of X, ``units`` give each name's unit (:mod:`.units` syntax)
     and ``target_unit`` the unit y must have (None: y's unit is arbitrary). ``snap_tol``:
     exponent snapping tolerance (0 disables it).
+
+    The search stops after ``generations`` generations of ``population`` or
+    ``max_evaluations`` fitness evaluations, whichever comes first: both are counts, so
+    with a fixed ``seed`` and ``n_threads`` the result does not depend on the machine's
+    speed or load. ``safety_seconds`` (None: no cap) only guards against a runaway search:
+    a search that reaches it raises :class:`BudgetError` instead of returning a front that
+    would depend on how fast the machine was.
     """
     SymbolicRegressor = require("pyoperon.sklearn", "symbolic").SymbolicRegressor
 
@@ -231,14 +251,29 @@ def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str
         raise ValueError(f"X must be (n, {len(names)}) and y (n,), got {X.shape}, {y.shape}")
     if not (np.all(np.isfinite(X)) and np.all(np.isfinite(y))):
         raise ValueError("X and y must be finite")
+    for name, value in (("generations", generations), ("population", population),
+                        ("max_evaluations", max_evaluations)):
+        if int(value) < 1:
+            raise ValueError(f"{name} must be a positive count, got {value}")
+    if safety_seconds is not None and safety_seconds <= 0:
+        raise ValueError(f"safety_seconds must be positive or None, got {safety_seconds}")
+    # pyoperon checks its time limit once per generation (whole seconds)
+    cap = None if safety_seconds is None else max(1, int(np.ceil(safety_seconds)))
     reg = SymbolicRegressor(
         allowed_symbols=OPERATORS, objectives=["mae", "length"], max_length=max_length,
         generations=generations, population_size=population, n_threads=n_threads,
-        random_state=seed, max_evaluations=10**7, max_time=max_seconds,
+        random_state=seed, max_evaluations=max_evaluations, max_time=cap,
         optimizer_iterations=5)
     t0 = time.perf_counter()
     reg.fit(X, y)
     seconds = time.perf_counter() - t0
+    stats = reg.stats_
+    if cap is not None and seconds >= cap and stats["generations"] < generations:
+        raise BudgetError(
+            f"symbolic regression reached its {cap} s safety cap after {stats['generations']} "
+            f"of {generations} generations; its "
+            f"front would depend on the machine's speed, so none is returned: raise the cap "
+            f"(--sr-max-seconds) or lower --sr-generations / --sr-population")
     hashes = {k: names[i] for i, k in enumerate(reg.variables_)}
     evaluate = lambda tree: reg.evaluate_model(tree, X)  # noqa: E731
     cands = []
@@ -255,18 +290,24 @@ def regress(X: np.ndarray, y: np.ndarray, names: list[str], units: dict[str, str
             ok, note = tree_units(tree, hashes, units, target_unit)
             cands.append(Candidate(text, to_sympy(text, names), complexity(tree),
                                    float(np.mean(np.abs(pred - y))), ok, note,
-                                   snapped=was_snapped))
+                                   snapped=was_snapped,
+                                   constants=tuple(float(c) for c in tree.GetCoefficients())))
     front = merge_fronts(cands)
     best = select(front)
     return front, best, dict(seconds=seconds, samples=len(y), seed=seed, n_threads=n_threads,
-                             generations=generations, population=population)
+                             generations=generations, population=population,
+                             max_evaluations=max_evaluations,
+                             generations_run=int(stats["generations"]))
 
 
 def linear_coefficients(expr: sympy.Expr, names: list[str]) -> dict[str, float] | None:
     """Coefficients of ``expr`` if it is affine in its variables (else None); key "1" is the
     constant term."""
     syms = sorted(expr.free_symbols, key=str)
-    poly = sympy.Poly(sympy.expand(expr), *syms) if syms else None
+    expr = sympy.expand(expr)
+    if syms and not expr.is_polynomial(*syms):  # 1/d, exp(d), min(...): not affine
+        return None
+    poly = sympy.Poly(expr, *syms) if syms else None
     if poly is None or poly.total_degree() > 1:
         return None
     out = {str(s): float(poly.coeff_monomial(s)) for s in syms}
