@@ -31,3 +31,24 @@ def test_docstring_example_parses(example):
     argv = shlex.split(example)[1:]
     args = cli.build_parser(argv).parse_args(argv)
     assert args.command == argv[0] and callable(args.func)
+
+
+def _subparsers(parser):
+    sub = next(a for a in parser._actions if a.dest == "command")
+    return sub.choices
+
+
+def test_every_option_of_every_subcommand_has_help():
+    missing = [f"{name} {'/'.join(a.option_strings) or a.dest}"
+               for name, p in _subparsers(cli.build_parser([])).items()
+               for a in p._actions
+               if a.help in (None, "") and a.dest != "help"]
+    assert not missing, f"options without help: {missing}"
+
+
+def test_description_lists_every_subcommand_and_no_none_choice():
+    parser = cli.build_parser([])
+    for name, p in _subparsers(parser).items():
+        assert f"\n  {name} " in parser.description, name
+        for a in p._actions:
+            assert None not in (a.choices or []), f"{name} {a.option_strings} lists None"

@@ -97,9 +97,14 @@ def check_dataset(args) -> None:
     """Build every scene of the ``diffgns dataset`` recipe (which validates it); raise an
     InputError naming the option at fault. Cylinder recipes are checked by their own
     dataclasses in :mod:`diffgns.mesh.datagen`."""
+    from diffgns.io.files import check_h5_file, partial_path
+
     out = Path(args.out)
     if out.exists() and out.is_dir():
         raise InputError("--out", f"{out} is a folder", "give the path of an .h5 file")
+    for path in (out, partial_path(out)):  # a file to resume must be readable
+        if path.exists():
+            check_h5_file(path, "--out")
     if args.kind == "column":
         from diffgns.io.datagen import column_scenes
 
@@ -146,6 +151,17 @@ def check_simulate(args):
         raise _scene_refusal(e, "--aspect-ratio", "check the column options",
                              _SIMULATE_OPTIONS) from None
     return scene, args.width
+
+
+def model_folder(name: str, field: str = "--model"):
+    """:func:`diffgns.models.model_path` of ``name``, its FileNotFoundError as an InputError."""
+    from diffgns.models import model_path
+
+    try:
+        return model_path(name)
+    except FileNotFoundError as e:
+        raise InputError(field, str(e), "give a model folder (config.json, params.msgpack) "
+                         "or a shipped model name (see models/)") from None
 
 
 def squares_kw(args) -> dict:

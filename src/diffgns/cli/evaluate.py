@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from diffgns.cli.checks import count, finite
+from diffgns.cli.checks import count, finite, model_folder
 
 
 def _is_mesh_model(path) -> bool:
@@ -15,10 +15,9 @@ def _is_mesh_model(path) -> bool:
 
 def _rollout(args) -> int:
     from diffgns.io.files import check_input_file
-    from diffgns.models import model_path
 
     check_input_file(args.data, "--data")
-    args.model = model_path(args.model)
+    args.model = model_folder(args.model)
     if _is_mesh_model(args.model):
         return _rollout_mesh(args)
     from diffgns.graph.data import load_trajectories
@@ -77,13 +76,12 @@ def _hybrid(args) -> int:
     from diffgns.hybrid.compare import compare, compare_scene
     from diffgns.hybrid.simulator import Schedule
     from diffgns.io.figures import animate
-    from diffgns.models import model_path
     from diffgns.trajectory import Trajectory
 
     sched = Schedule(warmup=args.warmup, gns_frames=args.gns_frames,
                      mpm_frames=args.mpm_frames, handoff=args.handoff,
                      adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
-    model = load_model(model_path(args.model))
+    model = load_model(model_folder(args.model))
     if args.scene:
         from diffgns.scene.files import load_scene
 

@@ -127,12 +127,12 @@ def run(args) -> int:
 
 
 def _invert(args) -> int:
-    from diffgns.errors import SceneError
-    from diffgns.graph.support import UnsupportedSceneError
     from diffgns.io.files import check_input_file
 
     if args.observation:
         check_input_file(args.observation, "--observation")
+    from diffgns.errors import SceneError
+    from diffgns.graph.support import UnsupportedSceneError
     try:
         return run(args)
     except UnsupportedSceneError as e:

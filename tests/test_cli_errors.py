@@ -1,0 +1,199 @@
+"""The command line's edge: bad arguments, recipes and files are refused with one line
+``diffgns: error: <field>: <what>; <fix>`` and exit status 2 before anything is written;
+interrupted datasets keep their finished trajectories (exit 130/143); ``--help`` imports no
+JAX."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from diffgns.cli import main
+from diffgns.io.dataset import load_dataset
+
+TINY = ["--aspect-ratios", "0.5", "--friction-angles", "30", "--frames", "3",
+        "--cells-across", "4"]
+
+
+def _refused(argv, capsys, field: str) -> str:
+    """Run ``argv``; assert exit 2 and one stderr line naming ``field``; return the line."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith(f"diffgns: error: {field}"), err
+    assert "Traceback" not in err and ";" in err  # what is wrong; the fix
+    return err
+
+
+BAD = [  # (arguments after `diffgns`, the field named)
+    (["dataset", "--kind", "column", "--friction-angles", "95"], "--friction-angles"),
+    (["dataset", "--kind", "column", "--friction-angles", "-5"], "--friction-angles"),
+    (["dataset", "--kind", "column", "--friction-angles", "nan"], "--friction-angles"),
+    (["dataset", "--kind", "column", "--friction-angles"], "--friction-angles"),
+    (["dataset", "--kind", "column", "--frames", "0"], "--frames"),
+    (["dataset", "--kind", "column", "--frames", "-5"], "--frames"),
+    (["dataset", "--kind", "column", "--aspect-ratios", "0"], "--aspect-ratios"),
+    (["dataset", "--kind", "column", "--aspect-ratios", "-1"], "--aspect-ratios"),
+    (["dataset", "--kind", "column", "--aspect-ratios", "inf"], "--aspect-ratios"),
+    (["dataset", "--kind", "column", "--aspect-ratios", "1.05"], "--aspect-ratios"),
+    (["dataset", "--kind", "column", "--width", "0"], "--aspect-ratios, --width"),
+    (["dataset", "--kind", "squares", "--n", "0"], "--n"),
+    (["dataset", "--kind", "squares", "--size", "2"], "--size"),
+    (["dataset", "--kind", "squares", "--dx", "0"], "--dx"),
+    (["dataset", "--kind", "squares", "--friction-angles", "20", "95"], "--friction-angles"),
+    (["simulate", "--column", "--frames", "0"], "--frames"),
+    (["simulate", "--column", "--frames", "-5"], "--frames"),
+    (["simulate", "--column", "--dtype", "None"], "--dtype"),
+    (["simulate", "--column", "--friction-angle", "95"], "--friction-angle"),
+    (["simulate", "--column", "--aspect-ratio", "0"], "--aspect-ratio"),
+    (["simulate", "--column", "--vtk-every", "0"], "--vtk-every"),
+    (["train", "--data", "x.h5", "--steps", "0"], "--steps"),
+]
+
+
+@pytest.mark.parametrize("argv,field", BAD, ids=[" ".join(a[:1] + a[-2:]) for a, _ in BAD])
+def test_bad_argument_refused_before_writing(tmp_path, capsys, argv, field):
+    out = tmp_path / "new" / ("d.h5" if argv[0] == "dataset" else "o")
+    _refused([*argv, "--out", str(out)], capsys, field)
+    assert not (tmp_path / "new").exists()
+
+
+def test_bad_scene_file_names_it(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scene]\ndx = 0.01\n[[bodies]]\nshape = {type='rectangle', x0=0, y0=0, "
+                   "x1=0.1, y1=0.1}\nmaterial = {type='sand', friction_angle=95}\n")
+    err = _refused(["simulate", "--scene", str(bad), "--out", str(tmp_path / "o")], capsys,
+                   f"--scene {bad}")
+    assert "friction_angle" in err and not (tmp_path / "o").exists()
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    """A one-trajectory column dataset made by ``diffgns dataset`` with :data:`TINY`."""
+    path = tmp_path_factory.mktemp("tiny") / "tiny.h5"
+    assert main(["dataset", "--kind", "column", *TINY, "--out", str(path)]) == 0
+    return path
+
+
+@pytest.fixture
+def truncated(tmp_path, tiny) -> Path:
+    bad = tmp_path / "trunc.h5"
+    bad.write_bytes(tiny.read_bytes()[:3000])
+    return bad
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--data", "{f}", "--out", "{o}"],
+    ["train", "--kind", "mesh", "--data", "{f}", "--out", "{o}"],
+    ["rollout", "--model", "gns_columns", "--data", "{f}", "--out", "{o}"],
+    ["invert", "s.toml", "--fit", "friction_angle=40:0:90", "--observation", "{f}",
+     "--out", "{o}"],
+])
+def test_missing_or_truncated_input_refused(tmp_path, capsys, truncated, command):
+    field = command[command.index("{f}") - 1]
+    capsys.readouterr()
+    for f, what in [(tmp_path / "missing.h5", "does not exist"),
+                    (truncated, "not a readable HDF5 file (truncated")]:
+        out = tmp_path / "runs" / "x"
+        err = _refused([a.format(f=f, o=out) for a in command], capsys, field)
+        assert str(f) in err and what in err
+        assert not (tmp_path / "runs").exists()  # no empty output folder
+
+
+def test_model_path_one_level_off_refused(tmp_path, capsys, tiny):
+    capsys.readouterr()
+    err = _refused(["rollout", "--model", "models/gns_columns/model", "--data", str(tiny),
+                    "--out", str(tmp_path / "r")], capsys, "--model")
+    assert "config.json" in err and not (tmp_path / "r").exists()
+
+
+def test_resume_with_another_recipe_refused(tmp_path, capsys, tiny):
+    path = tmp_path / "d.h5"
+    path.write_bytes(tiny.read_bytes())
+    before = path.read_bytes()
+    capsys.readouterr()
+    err = _refused(["dataset", "--kind", "column", "--aspect-ratios", "0.5", "1",
+                    "--friction-angles", "30", "--frames", "5", "--cells-across", "4",
+                    "--out", str(path)], capsys, f"--out {path}")
+    assert "aspect_ratios [0.5, 1.0] (file: [0.5])" in err and "n_frames 5 (file: 3)" in err
+    assert path.read_bytes() == before  # untouched
+    assert main(["dataset", "--kind", "column", *TINY, "--out", str(path)]) == 0
+
+
+def test_out_is_a_folder_or_unreadable(tmp_path, capsys, truncated):
+    capsys.readouterr()
+    _refused(["dataset", "--kind", "column", *TINY, "--out", str(tmp_path)], capsys, "--out")
+    before = truncated.read_bytes()
+    _refused(["dataset", "--kind", "column", *TINY, "--out", str(truncated)], capsys, "--out")
+    assert truncated.read_bytes() == before
+
+
+def test_help_imports_no_jax():
+    code = ("import sys, diffgns.cli as c; c.build_parser([]); "
+            "c.main(['simulate', '--column', '--frames', '0']); "
+            "print(sorted(m for m in ('jax', 'jax_md', 'flax', 'h5py', 'optax') "
+            "if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
+    assert "diffgns: error: --frames: 0 is not a count" in r.stderr
+
+
+def test_public_names_still_import():
+    import diffgns
+
+    code = ("import sys, diffgns; assert 'jax' not in sys.modules; "
+            "from diffgns import MPM, Scene, rollout, Trajectory, SceneError; "
+            "print(MPM.__name__, 'jax' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120)
+    assert r.stdout.split() == ["MPM", "True"], r.stderr
+    assert all(getattr(diffgns, name) is not None for name in diffgns.__all__)
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        diffgns.nope  # noqa: B018
+
+
+def _wait_for_first(path: Path, proc, timeout: float = 60.0) -> None:
+    t0 = time.monotonic()
+    while proc.poll() is None and time.monotonic() - t0 < timeout:
+        try:
+            with h5py.File(path, "r") as f:
+                if "00000" in f:
+                    return
+        except (OSError, KeyError):  # not created yet, or mid-write
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"no trajectory in {path} after {timeout} s")
+
+
+@pytest.mark.parametrize("sig,code", [
+    (signal.SIGINT, 130), pytest.param(signal.SIGTERM, 143, marks=pytest.mark.slow)])
+def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
+    out = tmp_path / "d" / "cols.h5"
+    argv = ["dataset", "--kind", "column", "--aspect-ratios", "0.5", "1",
+            "--friction-angles", "30", "--frames", "10", "--cells-across", "4", "--out",
+            str(out)]
+    env = dict(os.environ, HDF5_USE_FILE_LOCKING="FALSE")
+    proc = subprocess.Popen([sys.executable, "-m", "diffgns.cli", *argv], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_first(out.with_name("cols.h5.partial"), proc)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"diffgns: interrupted by {sig.name}; ") and "resume" in last
+    assert "Traceback" not in err
+    assert not out.exists()  # only the resumable .partial
+    kept = load_dataset(out.with_name("cols.h5.partial"))
+    assert len(kept) == 1
+    if sig == signal.SIGINT:  # resume: completes, keeps what was there, renames
+        assert main(argv) == 0
+        again = load_dataset(out)
+        assert len(again) == 2 and not out.with_name("cols.h5.partial").exists()
+        np.testing.assert_array_equal(np.asarray(again[0].positions),
+                                      np.asarray(kept[0].positions))
