@@ -84,6 +84,33 @@ def test_plot_runout_and_deposits(tmp_path):
         viz.plot_deposits([(np.zeros((3, 3)), "bad")], tmp_path / "d.png", traj.bounds)
 
 
+def _pixels_near(path, rgb, tol=40) -> int:
+    with Image.open(path) as im:
+        a = np.asarray(im.convert("RGB")).astype(int)
+    return int((np.abs(a - np.asarray(rgb)).max(-1) < tol).sum())
+
+
+def test_plot_runout_draws_labelled_reference_lines(tmp_path):
+    """A reference (Lube's law) is a dashed line in the next colour of the cycle (C1 after
+    one curve, orange): none without it, a horizontal run of it with it."""
+    t = np.linspace(0.0, 1.0, 20)
+    curve = 0.1 + 0.2 * t  # normalised 0 -> 2 with L0 = 0.1
+    orange = (255, 127, 14)
+    plain = viz.plot_runout(t, curve, tmp_path / "plain.png", labels=["deposit front"], L0=0.1)
+    ref = viz.plot_runout(t, curve, tmp_path / "ref.png", labels=["deposit front"], L0=0.1,
+                          references=[(1.5, "Lube et al. (2005): 1.50")],
+                          ylabel="normalised runout", title="a = 2")
+    assert _pixels_near(plain, orange) == 0
+    assert _pixels_near(ref, orange) > 100
+    with Image.open(ref) as im:
+        rows = (np.abs(np.asarray(im.convert("RGB")).astype(int) - orange).max(-1) < 40)
+    assert rows.sum(1).max() > 100  # a horizontal line, not a marker
+    with pytest.raises(ValueError, match="reference"):
+        viz.plot_runout(t, curve, tmp_path / "bad.png", references=[(np.nan, "Lube")])
+    with pytest.raises(ValueError, match="reference"):
+        viz.plot_runout(t, curve, tmp_path / "bad.png", references=[(1.0, "")])
+
+
 def read_vtu(path) -> tuple[ET.Element, dict[str, np.ndarray]]:
     """Parse a pyevtk ``.vtu`` (XML header + raw appended binary) into its arrays."""
     raw = path.read_bytes()

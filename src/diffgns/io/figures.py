@@ -153,6 +153,9 @@ def plot_runout(
     path: str | Path,
     labels: Sequence[str] | None = None,
     L0: float | None = None,
+    references: Sequence[tuple[float, str]] | None = None,
+    ylabel: str | None = None,
+    title: str | None = None,
 ) -> Path:
     """Plot runout versus time for one or more runs.
 
@@ -161,9 +164,14 @@ def plot_runout(
             an (n_curves, T) array).
         runouts: (T,) runout in m, a list of (T_i,) arrays or a (n_curves, T) array.
         path: output image (format from the suffix, e.g. ``.png``).
-        labels: legend entry per curve.
+        labels: legend entry per curve; say which runout each is (farthest particle, deposit
+            front, ...).
         L0: initial length of the column in m; if given, the normalised runout
             ``(L - L0) / L0`` is plotted instead of ``L``.
+        references: (value, label) horizontal reference lines (dashed, in the legend), in the
+            plotted quantity: normalised if ``L0`` is given, else m. E.g. Lube et al.'s law.
+        ylabel: y-axis label (default ``(L - L0) / L0`` or ``runout L (m)``).
+        title: figure title.
     """
     runouts = np.asarray(runouts) if not isinstance(runouts, (list, tuple)) else runouts
     curves = [np.asarray(r) for r in ([runouts] if np.ndim(runouts[0]) == 0 else runouts)]
@@ -175,18 +183,27 @@ def plot_runout(
         raise ValueError(f"got {len(time_list)} time arrays for {len(curves)} runout curves")
     if labels is not None and len(labels) != len(curves):
         raise ValueError(f"got {len(labels)} labels for {len(curves)} runout curves")
-    fig = _new_figure((5.0, 3.5))
+    references = list(references or [])
+    for value, label in references:
+        if not np.isfinite(value) or not label:
+            raise ValueError(f"reference lines need a finite value and a label, got "
+                             f"({value!r}, {label!r})")
+    fig = _new_figure((5.5, 3.8))
     ax = fig.subplots()
     for i, (t, r) in enumerate(zip(time_list, curves, strict=True)):
         if t.shape != r.shape:
             raise ValueError(f"curve {i}: times shape {t.shape} != runout shape {r.shape}")
         y = (r - L0) / L0 if L0 is not None else r
         ax.plot(t, y, label=labels[i] if labels is not None else None)
+    for k, (value, label) in enumerate(references):
+        ax.axhline(value, ls="--", lw=1.2, color=f"C{(len(curves) + k) % 10}", label=label)
     ax.set_xlabel("t (s)")
-    ax.set_ylabel("(L - L0) / L0" if L0 is not None else "runout L (m)")
+    ax.set_ylabel(ylabel or ("(L - L0) / L0" if L0 is not None else "runout L (m)"))
+    if title:
+        ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
-    if labels is not None:
-        ax.legend(fontsize=8)
+    if labels is not None or references:
+        ax.legend(fontsize=7)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
