@@ -82,7 +82,7 @@ def test_training_recipe_runs_its_stages_in_turn(tmp_path, monkeypatch):
 def test_pipeline_recovers_spring_law(tmp_path, variant):
     res = pipeline.run("spring", tmp_path, tmp_path / "data",
                        model=str(pipeline.model_folder(MODELS, "spring", variant)),
-                       sr_generations=100, progress=False, variant=variant)
+                       progress=False, variant=variant)  # the default budget
     assert res["check"]["equivalent"], res["check"]
     assert abs(res["check"]["k"] - 100) < 1.0
     assert res["sr_force"]["selected"]["consistent"]
