@@ -37,6 +37,7 @@ BAD = [  # (arguments after `diffgns`, the field named)
     (["dataset", "--kind", "column", "--friction-angles"], "--friction-angles"),
     (["dataset", "--kind", "column", "--frames", "0"], "--frames"),
     (["dataset", "--kind", "column", "--frames", "-5"], "--frames"),
+    (["dataset", "--kind", "column", "--frames", "1"], "--frames"),  # found by hypothesis
     (["dataset", "--kind", "column", "--aspect-ratios", "0"], "--aspect-ratios"),
     (["dataset", "--kind", "column", "--aspect-ratios", "-1"], "--aspect-ratios"),
     (["dataset", "--kind", "column", "--aspect-ratios", "inf"], "--aspect-ratios"),
@@ -48,6 +49,7 @@ BAD = [  # (arguments after `diffgns`, the field named)
     (["dataset", "--kind", "squares", "--friction-angles", "20", "95"], "--friction-angles"),
     (["simulate", "--column", "--frames", "0"], "--frames"),
     (["simulate", "--column", "--frames", "-5"], "--frames"),
+    (["simulate", "--column", "--frames", "1"], "--frames"),
     (["simulate", "--column", "--dtype", "None"], "--dtype"),
     (["simulate", "--column", "--friction-angle", "95"], "--friction-angle"),
     (["simulate", "--column", "--aspect-ratio", "0"], "--aspect-ratio"),

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import signal
 import sys
 import threading
@@ -23,7 +24,14 @@ from diffgns.errors import InputError, Interrupted, SceneError
 
 
 class Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line: ``diffgns: error: ...`` (exit 2)."""
+    """An ArgumentParser whose usage errors are one line: ``diffgns: error: ...`` (exit 2),
+    and which reads every negative number (``-1e3``, ``-inf``, not only ``-5`` and ``-0.5``)
+    as a value, not as an option."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(
+            r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
 
     def error(self, message: str):
         if message.startswith("argument "):
@@ -42,6 +50,17 @@ def count(text: str) -> int:
                                          ">= 1") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"{value} is not a count >= 1; give at least 1")
+    return value
+
+
+def frames(text: str) -> int:
+    """argparse type: frames of a stored trajectory, >= 2 (3 positions give the one
+    acceleration the dataset statistics need)."""
+    value = count(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"{value} frame is too short for a dataset (its "
+                                         "acceleration statistics need 3 positions); give "
+                                         "at least 2")
     return value
 
 

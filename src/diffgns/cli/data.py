@@ -5,7 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from diffgns.cli.checks import check_dataset, check_simulate, count, finite, squares_kw
+from diffgns.cli.checks import (
+    check_dataset,
+    check_simulate,
+    count,
+    finite,
+    frames,
+    squares_kw,
+)
 
 
 def _simulate(args) -> int:
@@ -103,8 +110,8 @@ def register(sub) -> None:
                    help="friction angle of the sand, degrees in (0, 90) (default 30)")
     s.add_argument("--cells-across", type=count, default=10,
                    help="grid cells across the column width, count (default 10)")
-    s.add_argument("--frames", type=count, default=200,
-                   help="frames to simulate, count >= 1 (frame dt from the scene, 2.5 ms for "
+    s.add_argument("--frames", type=frames, default=200,
+                   help="frames to simulate, count >= 2 (frame dt from the scene, 2.5 ms for "
                    "--column) (default 200)")
     s.add_argument("--dtype", default=None, choices=["float32", "float64"],
                    help="floating-point precision (default: JAX's, float32 unless "
@@ -123,8 +130,8 @@ def register(sub) -> None:
     d.add_argument("--out", required=True,
                    help="output .h5 file; built as <out>.partial and renamed when complete; "
                    "an existing file or .partial made by the same recipe is resumed")
-    d.add_argument("--frames", type=count, default=320,
-                   help="frames per trajectory, count >= 1 (2.5 ms each for MPM kinds; "
+    d.add_argument("--frames", type=frames, default=320,
+                   help="frames per trajectory, count >= 2 (2.5 ms each for MPM kinds; "
                    "--frame-dt for cylinder) (default 320)")
     d.add_argument("--aspect-ratios", type=finite, nargs="+", default=[0.5, 1.0, 2.0, 3.0],
                    help="column: height / width ratios, dimensionless > 0 (default 0.5 1 2 3)")
