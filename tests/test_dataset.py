@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from diffgns.errors import InputError
 from diffgns.io.dataset import (
     DatasetWriter,
     finite_difference_velocity,
@@ -17,6 +18,7 @@ from diffgns.io.dataset import (
     metadata_path,
     read_metadata,
 )
+from diffgns.io.files import check_h5_file, partial_path, staged_dir
 from diffgns.io.npz import load_gns_npz, write_gns_npz
 from diffgns.trajectory import FLUID, SAND, Trajectory
 
@@ -261,3 +263,101 @@ def test_gns_npz_errors(tmp_path):
     np.savez(tmp_path / "x.npz", plain=np.zeros((3, 4, 2)))
     with pytest.raises(ValueError, match=r"'plain'.*tuple"):
         load_gns_npz(tmp_path / "x.npz")
+
+
+# ------------------------------------------------- staged writes, recipes, input checks
+RECIPE = dict(kind="test", n_frames=6, angles=[25.0, 35.0])
+
+
+def test_staged_writer_builds_partial_and_renames_on_success(tmp_path):
+    path = tmp_path / "new" / "d.h5"
+    with DatasetWriter(path, recipe=RECIPE, staged=True) as w:
+        w.write("00000", make_traj(0))
+        assert w.path == partial_path(path) and partial_path(path).exists()
+        assert not path.exists()
+        w.finalize(connectivity_radius=0.1)
+    assert path.exists() and not partial_path(path).exists()
+    assert metadata_path(path).exists()  # next to the final name, not the .partial
+    assert json.loads(h5py.File(path, "r").attrs["recipe"]) == RECIPE
+
+
+def test_failure_before_any_trajectory_leaves_nothing(tmp_path):
+    path = tmp_path / "a" / "b" / "d.h5"
+    with pytest.raises(KeyboardInterrupt), DatasetWriter(path, recipe=RECIPE, staged=True):
+        raise KeyboardInterrupt
+    assert not (tmp_path / "a").exists()
+
+
+def test_failure_after_a_trajectory_keeps_a_resumable_partial(tmp_path):
+    path = tmp_path / "d.h5"
+    with pytest.raises(RuntimeError), DatasetWriter(path, recipe=RECIPE, staged=True) as w:
+        w.write("00000", make_traj(0))
+        raise RuntimeError("stop")
+    assert not path.exists() and len(load_dataset(partial_path(path))) == 1
+    with DatasetWriter(path, recipe=RECIPE, staged=True) as w:  # resume
+        assert w.has("00000")
+        w.write("00001", make_traj(1))
+    assert [k for k in h5py.File(path, "r")] == ["00000", "00001"]
+    assert not partial_path(path).exists()
+
+
+@pytest.mark.parametrize("staged", [False, True])
+def test_resume_with_another_recipe_is_refused_untouched(tmp_path, staged):
+    path = tmp_path / "d.h5"
+    with DatasetWriter(path, recipe=RECIPE) as w:
+        w.write("00000", make_traj(0))
+    before = path.read_bytes()
+    other = dict(RECIPE, n_frames=12, angles=[25.0], seed=3)
+    with pytest.raises(InputError) as e:
+        DatasetWriter(path, recipe=other, staged=staged)
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: was made by a different recipe: ")
+    assert "angles [25.0] (file: [25.0, 35.0])" in msg and "n_frames 12 (file: 6)" in msg
+    assert "seed 3 (file: null)" in msg and "kind" not in msg
+    assert path.read_bytes() == before
+    with DatasetWriter(path, recipe=RECIPE, staged=staged) as w:  # the same recipe resumes
+        assert w.has("00000")
+
+
+def test_file_without_recipe_is_not_resumed_blindly(tmp_path):
+    path = tmp_path / "d.h5"
+    with DatasetWriter(path) as w:
+        w.write("00000", make_traj(0))
+    with pytest.raises(InputError, match="no recipe fingerprint"):
+        DatasetWriter(path, recipe=RECIPE)
+
+
+def test_check_h5_file_messages(tmp_path):
+    good = tmp_path / "good.h5"
+    with DatasetWriter(good) as w:
+        w.write("00000", make_traj(0))
+    check_h5_file(good, "--data", trajectories=True)
+    empty = tmp_path / "empty.h5"
+    h5py.File(empty, "w").close()
+    trunc = tmp_path / "trunc.h5"
+    trunc.write_bytes(good.read_bytes()[:2000])
+    for path, what in [(tmp_path / "nope.h5", "does not exist"), (tmp_path, "is not a file"),
+                       (trunc, "is not a readable HDF5 file (truncated file"),
+                       (empty, "holds no trajectory")]:
+        with pytest.raises(InputError) as e:
+            check_h5_file(path, "--data", trajectories=True)
+        assert str(e.value).startswith(f"--data: {path} ") and what in str(e.value)
+
+
+def test_staged_dir_publishes_only_on_success(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("old")
+    with pytest.raises(RuntimeError), staged_dir(out) as tmp:
+        (tmp / "keep.txt").write_text("new")
+        raise RuntimeError
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no leftover temporary folder
+    assert (out / "keep.txt").read_text() == "old"
+    with staged_dir(out) as tmp:
+        (tmp / "keep.txt").write_text("new")
+        (tmp / "sub").mkdir()
+    assert (out / "keep.txt").read_text() == "new" and (out / "sub").is_dir()
+    fresh = tmp_path / "x" / "y"
+    with pytest.raises(RuntimeError), staged_dir(fresh):
+        raise RuntimeError
+    assert not (tmp_path / "x").exists()
