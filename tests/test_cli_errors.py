@@ -199,3 +199,22 @@ def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
         assert len(again) == 2 and not out.with_name("cols.h5.partial").exists()
         np.testing.assert_array_equal(np.asarray(again[0].positions),
                                       np.asarray(kept[0].positions))
+
+
+def test_cylinder_resume_with_another_recipe_refused(tmp_path, capsys):
+    from diffgns.cli.checks import Parser
+    from diffgns.cli.data import _cylinder_recipe, register
+    from diffgns.io.dataset import H5TrajectoryFile
+
+    path = tmp_path / "cyl.h5"
+    parser = Parser(prog="diffgns")
+    register(parser.add_subparsers(dest="command"))
+    made = parser.parse_args(["dataset", "--kind", "cylinder", "--n", "2", "--out", str(path)])
+    with H5TrajectoryFile(path, recipe=_cylinder_recipe(made)) as f:  # a finished trajectory
+        f._store("00000", {"time": [0.0]}, {})
+    before = path.read_bytes()
+    capsys.readouterr()
+    err = _refused(["dataset", "--kind", "cylinder", "--n", "3", "--cfl", "0.1", "--out",
+                    str(path)], capsys, f"--out {path}")
+    assert "n 3 (file: 2)" in err and "cfl 0.1 (file: 0.15)" in err
+    assert path.read_bytes() == before

@@ -75,8 +75,23 @@ def _generate(args) -> int:
     return 0
 
 
+def _cylinder_refusal(msg: str):
+    """An InputError naming the option of a CylinderSampling/CylinderRun message."""
+    import re
+
+    from diffgns.errors import InputError
+
+    m = (re.search(r"Cylinder(?:Sampling|Run)\.(\w+)", msg)
+         or re.search(r"\b(\w+_range)\b", msg))
+    name = m.group(1) if m else ""
+    option = "--frames" if name == "n_frames" else "--" + name.replace("_", "-")
+    return InputError(option if m else "--kind cylinder", msg,
+                      "see `diffgns dataset --help` for the units and defaults")
+
+
 def _dataset_cylinder(args) -> int:
-    from diffgns.errors import SceneError
+    from diffgns.io.dataset import H5TrajectoryFile
+    from diffgns.io.files import trajectory_count
     from diffgns.mesh.datagen import CylinderRun, CylinderSampling, generate_cylinder
 
     try:
@@ -89,10 +104,27 @@ def _dataset_cylinder(args) -> int:
                           grading=args.grading, size_wake=args.size_wake or None,
                           cfl=args.cfl)
     except ValueError as e:
-        raise SceneError(str(e)) from e
-    path = generate_cylinder(args.out, args.n, seed=args.seed, sampling=sampling, run=run)
+        raise _cylinder_refusal(str(e)) from None
+    out = Path(args.out)
+    created = not out.exists()
+    # refuse a resume with another recipe, stamp a new file with this one
+    H5TrajectoryFile(out, recipe=_cylinder_recipe(args)).close()
+    try:
+        path = generate_cylinder(out, args.n, seed=args.seed, sampling=sampling, run=run)
+    except BaseException:
+        if created and out.exists() and trajectory_count(out) == 0:
+            out.unlink()  # nothing finished: leave nothing behind
+        raise
     print(f"dataset written to {path}")
     return 0
+
+
+def _cylinder_recipe(args) -> dict:
+    """The fingerprint of a cylinder-flow dataset: every option that shapes it."""
+    names = ("n", "seed", "frames", "re_range", "u_max_range", "radius_range", "cx_range",
+             "cy_range", "frame_dt", "spinup", "size_cylinder", "size_far", "grading",
+             "size_wake", "cfl")
+    return dict(kind="cylinder", **{k: getattr(args, k) for k in names})
 
 
 def register(sub) -> None:
