@@ -198,7 +198,7 @@ class DiffgnsMPM88:
             for sl, (nx, ny) in slabs:
                 vx, vy = wall_slip(gv[0][sl], gv[1][sl], nx, ny)
                 gv = gv.at[(slice(None), *sl)].set(jnp.stack([vx, vy]))
-            v, C = g2p(idx, w, dpos, gv.reshape(2, n_nodes), DX)
+            v, C = g2p(idx, w, dpos, gv, DX)
             x = x + DT * v
             J = J * (1.0 + DT * (C[0, 0] + C[1, 1]))
             return (x, v, C, J), None

@@ -45,7 +45,7 @@ def test_transfer_gradients(x64):
         idx, w, dpos = stencil(X, shape)
         m = jnp.ones(X.shape[1])
         grid = p2g(idx, w, dpos, m, m * v, jnp.zeros((2, 2, X.shape[1])), 100, 0.1)
-        return g2p(idx, w, dpos, grid_velocity(grid), 0.1)
+        return g2p(idx, w, dpos, grid_velocity(grid).reshape(2, *shape), 0.1)
 
     check_grads(roundtrip, (X, jnp.asarray(rng.normal(size=(2, 6)))), order=1,
                 modes=("rev",), eps=1e-6, rtol=1e-4, atol=1e-6)

@@ -7,7 +7,7 @@ import pytest
 from diffgns import MPM, Body, Elastic, Rectangle, Sand, Scene, Wall, Walls
 from diffgns.interface import rollout_jit
 from diffgns.mpm.shape import stencil
-from diffgns.mpm.transfer import p2g
+from diffgns.mpm.transfer import g2p, p2g
 
 
 def elastic_block(gravity=(0.0, -9.81), velocity=(0.0, 0.0), domain=((0, 1), (0, 1)),
@@ -27,6 +27,25 @@ def test_mass_transfer_exact():
     grid = p2g(idx, w, dpos, m, m * s.v, jnp.zeros_like(s.C), int(np.prod(sim.grid_shape)), sim.dx)
     np.testing.assert_allclose(float(grid[:, 2].sum()), float(m.sum()), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(w.sum(0)), 1.0, rtol=1e-6)
+
+
+def test_g2p_patch_gather_equals_nine_node_gather(x64):
+    """The patch-row gather of g2p reads exactly the nine stencil nodes of every particle
+    (reference: one gather per offset at idx), near all four grid edges too."""
+    rng = np.random.default_rng(3)
+    shape = (7, 11)
+    X = jnp.asarray(np.stack([rng.uniform(0.5, shape[0] - 1.5, 200),
+                              rng.uniform(0.5, shape[1] - 1.5, 200)]))
+    X = X.at[:, :4].set(jnp.asarray([[0.5, 5.49, 0.5, 5.49], [0.5, 9.49, 9.49, 0.5]]))
+    idx, w, dpos = stencil(X, shape)
+    gv = jnp.asarray(rng.normal(size=(2, *shape)))
+    v, C = g2p(idx, w, dpos, gv, 0.1)
+    g = gv.reshape(2, -1)[:, idx]  # (2, 9, N)
+    np.testing.assert_allclose(np.asarray(v), np.asarray((w * g).sum(1)), rtol=1e-13)
+    C_ref = 40.0 * jnp.einsum("aon,bon->abn", w * g, dpos)
+    np.testing.assert_allclose(np.asarray(C), np.asarray(C_ref), rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="nx, ny"):
+        g2p(idx, w, dpos, gv.reshape(2, -1), 0.1)
 
 
 def test_momentum_conserved_in_free_flight(x64):

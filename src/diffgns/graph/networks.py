@@ -122,17 +122,19 @@ class InteractionStep(nn.Module):
             h = MLP(self.latent, self.mlp_layers - 1, self.latent, name="edge_mlp")(h)
         else:
             h = nn.LayerNorm(name="edge_norm")(nn.Dense(self.latent, name="edge_out")(h))
-        m = mask[:, None]
-        msg = jnp.where(m, h, 0.0)
+        msg = h
         if self.attention:
+            msg = jnp.where(mask[:, None], h, 0.0)
             feats = jnp.concatenate([msg, _gather(v, receivers)], axis=-1)
             score = nn.Dense(1, name="score")(feats)[:, 0]
             w = segment_softmax(score, receivers, mask, n)
             msg = msg * w[:, None]
+        # Masked edges carry the receiver index n (see EncodeProcessDecode): segment_sum
+        # drops them, so no (E, L) masking pass is needed here.
         agg = jax.ops.segment_sum(msg, receivers, num_segments=n)
         dv = MLP(self.latent, self.mlp_layers, self.latent, name="node_mlp")(
             jnp.concatenate([v, agg], axis=-1))
-        return v + dv, jnp.where(m, e + h, 0.0)
+        return v + dv, e + h
 
 
 class EncodeProcessDecode(nn.Module):
@@ -179,7 +181,9 @@ class EncodeProcessDecode(nn.Module):
         v = MLP(self.latent, self.mlp_layers, self.latent, name="node_encoder")(
             jnp.concatenate([node_features, emb.astype(node_features.dtype)], axis=-1))
         e = MLP(self.latent, self.mlp_layers, self.latent, name="edge_encoder")(edge_features)
-        e = jnp.where(edge_mask[:, None], e, 0.0)
+        # Padded edges get the out-of-range receiver N: every segment_sum drops them, so
+        # their (finite) latents never reach a node and the processor needs no masking pass.
+        receivers = jnp.where(edge_mask, receivers, v.shape[0])
         history: list[jax.Array] = [e]
         for k in range(self.mp_steps):
             v, e = InteractionStep(self.latent, self.mlp_layers, self.attention,
@@ -187,7 +191,7 @@ class EncodeProcessDecode(nn.Module):
             history.append(e)
         out = MLP(self.latent, self.mlp_layers, self.out, layer_norm=False, name="decoder")(v)
         if return_edge_latents:
-            return out, jnp.stack(history)
+            return out, jnp.where(edge_mask[None, :, None], jnp.stack(history), 0.0)
         return out
 
 

@@ -140,7 +140,7 @@ class MPM:
         gv = gv.reshape(2, n_nodes)
         if self.obstacle_nodes:
             gv = boundaries.apply_obstacles(gv, self.obstacle_nodes, params.obstacle_mu)
-        v, C = g2p(idx, w, dpos, gv, dx)
+        v, C = g2p(idx, w, dpos, gv.reshape(2, *self.grid_shape), dx)
         x = state.x + dt * v
         lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
         x = jnp.clip(x, lo[:, None], hi[:, None])  # never leave the domain (and the grid)
