@@ -76,9 +76,20 @@ def test_bad_scene_file_names_it(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
-    """A one-trajectory column dataset made by ``diffgns dataset`` with :data:`TINY`."""
+    """A one-trajectory dataset stamped with the recipe of ``diffgns dataset --kind column
+    TINY`` (its trajectory is random: no MPM compile in this module)."""
+    from diffgns.io.datagen import column_recipe
+    from diffgns.io.dataset import DatasetWriter
+    from diffgns.trajectory import Trajectory
+
     path = tmp_path_factory.mktemp("tiny") / "tiny.h5"
-    assert main(["dataset", "--kind", "column", *TINY, "--out", str(path)]) == 0
+    recipe = column_recipe([0.5], [30.0], 3, 0.1, 4, domain_length=None, domain_height=None)
+    pos = np.random.default_rng(0).random((4, 8, 2)).astype(np.float32)
+    traj = Trajectory(positions=pos, velocities=np.zeros_like(pos),
+                      particle_type=np.zeros(8, np.int32), material=np.zeros(8, np.float32),
+                      frame_dt=2.5e-3, bounds=((0.0, 1.0), (0.0, 1.0)))
+    with DatasetWriter(path, recipe=recipe) as w:
+        w.write("00000", traj)
     return path
 
 
@@ -124,7 +135,8 @@ def test_resume_with_another_recipe_refused(tmp_path, capsys, tiny):
                     "--out", str(path)], capsys, f"--out {path}")
     assert "aspect_ratios [0.5, 1.0] (file: [0.5])" in err and "n_frames 5 (file: 3)" in err
     assert path.read_bytes() == before  # untouched
-    assert main(["dataset", "--kind", "column", *TINY, "--out", str(path)]) == 0
+    assert main(["dataset", "--kind", "column", *TINY, "--out", str(path)]) == 0  # resumes
+    assert len(load_dataset(path)) == 1  # the one sample was there: nothing regenerated
 
 
 def test_out_is_a_folder_or_unreadable(tmp_path, capsys, truncated):
@@ -193,7 +205,7 @@ def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
     assert not out.exists()  # only the resumable .partial
     kept = load_dataset(out.with_name("cols.h5.partial"))
     assert len(kept) == 1
-    if sig == signal.SIGINT:  # resume: completes, keeps what was there, renames
+    if sig == signal.SIGTERM:  # (slow) resume: completes, keeps what was there, renames
         assert main(argv) == 0
         again = load_dataset(out)
         assert len(again) == 2 and not out.with_name("cols.h5.partial").exists()
@@ -218,3 +230,20 @@ def test_cylinder_resume_with_another_recipe_refused(tmp_path, capsys):
                     str(path)], capsys, f"--out {path}")
     assert "n 3 (file: 2)" in err and "cfl 0.1 (file: 0.15)" in err
     assert path.read_bytes() == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupted_simulate_leaves_nothing(tmp_path, sig, code):
+    """Interrupted mid-run (the process used to crash with SIGSEGV while tearing down the
+    interrupted XLA computation): one line, 130/143, no output folder, no staging folder."""
+    proc = subprocess.Popen([sys.executable, "-m", "diffgns.cli", "simulate", "--column",
+                             "--frames", "2000", "--cells-across", "4", "--out",
+                             str(tmp_path / "sim" / "out")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(8)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip().splitlines()[-1] == f"diffgns: interrupted by {sig.name}"
+    assert list(tmp_path.iterdir()) == []

@@ -28,6 +28,7 @@ exit with 130/143 (``diffgns dataset`` keeps its finished trajectories, resumabl
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from contextlib import nullcontext
 
@@ -100,6 +101,11 @@ def main(argv=None) -> int:
         return rc
     except (KeyboardInterrupt, Interrupted) as e:
         rc = report_interrupt(e, getattr(e, "detail", ""))
+        if argv is None:  # the `diffgns` process: files are closed; skip the interpreter's
+            remove_empty_dirs(created)  # finalisation, which can crash (SIGSEGV) while
+            sys.stdout.flush()  # XLA computations interrupted mid-flight are torn down
+            sys.stderr.flush()
+            os._exit(rc)
         return rc
     finally:
         if rc != 0:

@@ -104,7 +104,7 @@ def _scene_refusal(e: Exception, default: str, fix: str,
                    options: dict | None = None) -> InputError:
     """An InputError naming the options (``options``: message word -> (option, fix)) a
     scene/builder error ``e`` is about."""
-    msg = str(e) if not isinstance(e, ZeroDivisionError) else f"{default} is 0 ({e})"
+    msg = str(e) if not isinstance(e, ZeroDivisionError) else "0 leads to a division by zero"
     hits = [(opt, f) for word, (opt, f) in (options or _OPTIONS).items() if word in msg]
     field = ", ".join(dict.fromkeys(opt for opt, _ in hits)) or default
     if ";" in msg:
