@@ -18,8 +18,9 @@ reach N:
   per 16 MPM particles: a 4 x 4 block, 12.5 mm), in the domain of the same column scene
   (``GNSConfig.bounds`` enlarged to it; the cost does not depend on the weights' values). One
   step = one 5 ms frame (frame stride 2 of the 2.5 ms data). Cost per simulated second =
-  seconds per step / frame_dt. The neighbour list is rebuilt every step (no skin); up to 1,024
-  nodes it is all-pairs, above a cell list.
+  seconds per step / frame_dt. The nodes start at rest; the neighbour list is rebuilt every
+  step (no skin), so the cost does not depend on how far they move. Up to 1,024 nodes the list
+  is all-pairs, above a cell list (the library's choice).
 
 Same physical column: a column that the MPM resolves with N particles is N / 16 GNS nodes, so
 the ratio at a physical size is MPM cost(N) / GNS cost(N / 16) (both measured: the GNS is also
@@ -33,8 +34,9 @@ memory loses only its case): the rollout is compiled ahead of time (``diffgns.me
 time and XLA's memory analysis), a case whose XLA estimate exceeds 80% of the memory available
 is not run, then the first call and ``--repeats`` steady calls are timed (``diffgns.timing``,
 block_until_ready; 3 steady calls when one call is expected to exceed ~3 s); frames per call
-are chosen so that a call lasts ~1 s. RSS delta = peak RSS of the worker - its RSS before
-building the case. Workers run size by size, MPM and GNS alternating first. Measured under
+are chosen so that a call lasts ~1 s on a quiet machine. RSS delta = peak RSS of the worker -
+its RSS before building the case (after imports and loading the model; compiling included).
+Workers run size by size, MPM and GNS alternating first. Measured under
 ``benchmarks/protocol.py``; writes ``benchmarks/results/scaling.json`` and ``scaling.png``.
 """
 from __future__ import annotations
@@ -57,7 +59,8 @@ TARGET_CALL_S = 1.0
 LONG_CALL_S = 3.0  # above this expected call time, 3 steady calls
 MEMORY_FRACTION = 0.8
 # rough cost models (seconds) that choose frames per call; a wrong guess only makes a call
-# longer or shorter than TARGET_CALL_S (from --quick runs at ~1k and ~4k, 2 threads)
+# longer or shorter than TARGET_CALL_S (CPU time of --quick runs at ~1k and ~4k on a loaded
+# machine, over the ~1.7 cores a quiet machine gives)
 MPM_S_PER_SUBSTEP = (2.0e-4, 2.5e-7)  # overhead, per particle
 GNS_S_PER_STEP = (2.0e-3, 6.0e-5)  # overhead, per node
 
@@ -343,8 +346,8 @@ def pair_table(pairs: list[dict], factor: int) -> str:
     return "\n".join(lines)
 
 
-def summary_lines(laws: dict, cross: dict | None, factor: int) -> list[str]:
-    """The fitted laws and the crossover, one line each."""
+def summary_lines(laws: dict, cross: dict | None, factor: int, pairs=()) -> list[str]:
+    """The fitted laws, the crossover and the measured same-column ratios, one line each."""
     out = []
     for k, name in (("mpm", "MPM (N particles)"), ("gns", "GNS (N nodes)"),
                     ("gns_same_column", "GNS on the MPM's columns (N nodes)")):
@@ -363,6 +366,15 @@ def summary_lines(laws: dict, cross: dict | None, factor: int) -> list[str]:
         out.append(f"crossover: MPM law(N) = GNS same-column law(N/{factor}) at "
                    f"N = {cross['n_mpm']:.3g} MPM particles ({cross['n_gns']:.3g} GNS nodes), "
                    f"{where} the measured range; the GNS is cheaper {cross['gns_cheaper']} it")
+    if pairs:
+        r = [p["mpm_over_gns"] for p in pairs]
+        cheaper = [p["mpm_particles"] for p in pairs if p["mpm_over_gns"] > 1]
+        verdict = ("the GNS is cheaper on every measured column" if len(cheaper) == len(r) else
+                   "the MPM is cheaper on every measured column" if not cheaper else
+                   f"the GNS is cheaper on the columns of {', '.join(map(str, cheaper))} "
+                   "MPM particles")
+        out.append(f"measured MPM/GNS on the same columns: {min(r):.3g} to {max(r):.3g}; "
+                   + verdict)
     return out
 
 
@@ -472,7 +484,7 @@ def main(argv=None):
     pairs = physical_pairs(mpm_rows, gns_rows, factor)
     run.print(cost_table(mpm_rows, gns_rows))
     run.print(pair_table(pairs, factor))
-    for line in summary_lines(laws, cross, factor):
+    for line in summary_lines(laws, cross, factor, pairs):
         run.print(line)
     payload = {
         "description": __doc__.split("\n\n")[2].replace("\n", " "),

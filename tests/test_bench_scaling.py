@@ -134,4 +134,11 @@ def test_summary_lines_report_crossover_side_and_range():
     assert "cheaper above" in lines[3]
     far = scaling.crossover(_law(1e-4, 1.0, 1e4, 1e5), laws["gns_same_column"], 16)
     assert "OUTSIDE (extrapolated)" in scaling.summary_lines(laws, far, 16)[3]
+    pairs = [{"mpm_particles": 1024, "mpm_over_gns": 0.5},
+             {"mpm_particles": 4096, "mpm_over_gns": 2.0}]
+    assert scaling.summary_lines(laws, cross, 16, pairs)[-1] == (
+        "measured MPM/GNS on the same columns: 0.5 to 2; the GNS is cheaper on the columns "
+        "of 4096 MPM particles")
+    assert scaling.summary_lines(laws, cross, 16, pairs[1:])[-1].endswith(
+        "the GNS is cheaper on every measured column")
     assert "no fit" in scaling.summary_lines({"mpm": None, "gns": None}, None, 16)[0]
