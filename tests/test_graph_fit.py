@@ -101,14 +101,17 @@ def test_validation_runs_on_its_period_and_at_the_end(tmp_path):
     assert lines[-1]["error"] < lines[0]["error"]
 
 
-def test_sigterm_checkpoints_the_step_in_flight_and_the_run_resumes(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_checkpoints_the_step_in_flight_and_the_run_resumes(tmp_path, signum, capsys):
     straight, _, _ = _fit(tmp_path / "straight", 30)
-    before = signal.getsignal(signal.SIGTERM)
-    kill = lambda step: step == 12 and os.kill(os.getpid(), signal.SIGTERM)
+    before = [signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)]
+    kill = lambda step: step == 12 and os.kill(os.getpid(), signum)
     with pytest.raises(TrainingInterrupted) as e:
         _fit(tmp_path / "run", 30, hook=kill)
-    assert e.value.code == 143 and e.value.step == 13  # the step in flight completed
-    assert signal.getsignal(signal.SIGTERM) == before  # handler restored
+    assert e.value.code == 128 + signum and e.value.step == 13  # the step in flight completed
+    assert [signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)] == before  # restored
+    err = capsys.readouterr().err
+    assert f"{signal.Signals(signum).name}: checkpoint of step 13 written to" in err
     update, p0, s0 = _problem(_cfg(30))
     _, _, step = load_checkpoint(tmp_path / "run" / CHECKPOINT, p0, s0)
     assert step == 13
@@ -123,8 +126,9 @@ def test_ctrl_c_keeps_the_last_completed_step(tmp_path):
         if step == 7:
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(TrainingInterrupted) as e:  # no traceback: exit status 130
         _fit(tmp_path, 30, hook=interrupt)
+    assert e.value.code == 130 and e.value.step == 7
     update, p0, s0 = _problem(_cfg(30))
     p, _, step = load_checkpoint(tmp_path / CHECKPOINT, p0, s0)
     assert step == 7

@@ -3,20 +3,24 @@
 :func:`fit` runs ``update(params, opt_state, step)`` until ``TrainConfig.steps`` and owns what
 a training run needs around it, the same for every network:
 
-* **resume**: ``out/checkpoint.msgpack`` (params, optimiser state, step; msgpack, written
-  atomically with a JSON sidecar) is loaded if present. Randomness must be a function of
-  (seed, step) (:func:`step_rng`), so a resumed run draws exactly the batches and noise an
-  uninterrupted one would;
+* **exact resume**: ``out/checkpoint.msgpack`` (params, optimiser state, step, the seconds
+  trained so far and the caller's host state, e.g. neighbour-list capacities; msgpack,
+  written atomically with a JSON sidecar) is loaded if present. Randomness must be a
+  function of (seed, step) (:func:`step_rng`) and every other input of the step either in
+  the checkpoint (``host_state``) or derived from it, so a resumed run is bit-identical to an
+  uninterrupted one;
 * **checkpoints** every ``checkpoint_every`` steps and at the end;
 * **logging**: ``out/train_log.csv`` with columns ``step, <metrics>, lr, seconds``: the mean
   of each metric over the last ``log_every`` steps, the learning rate of the next step and
-  the seconds since this call; a tqdm bar;
+  the seconds of training so far (cumulative over resumes); a tqdm bar. On resume, rows
+  after the checkpoint's step (written before a hard kill) are dropped;
 * **validation** (optional): every ``validate_every`` steps and at the end, one JSON line of
   metrics in ``out/valid_log.jsonl``;
-* **SIGTERM** (e.g. a batch scheduler's pre-emption): the step in flight finishes, the
-  checkpoint is written and :class:`TrainingInterrupted` (a ``SystemExit`` with status 143)
-  is raised; the same command then resumes. Ctrl-C (``KeyboardInterrupt``) also writes the
-  checkpoint of the last completed step before propagating;
+* **SIGINT and SIGTERM** (Ctrl-C, a batch scheduler's pre-emption): the step in flight
+  finishes, the checkpoint of that step is written, one line says so and
+  :class:`TrainingInterrupted` (a ``SystemExit`` with status 130 or 143) is raised; the same
+  command then resumes. A second Ctrl-C (or a ``KeyboardInterrupt`` raised elsewhere)
+  stops at once and writes the checkpoint of the last completed step;
 * the **learning-rate schedule** (:func:`learning_rate`): Adam with exponential decay from
   ``lr`` to ``lr_final`` over ``lr_decay_steps``, held at ``lr_final`` after.
 """
@@ -26,17 +30,20 @@ import contextlib
 import dataclasses
 import json
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import numpy as np
 import optax
 from flax import serialization
 from tqdm import tqdm
+
+from diffgns.errors import Interrupted
 
 CHECKPOINT = "checkpoint.msgpack"
 
@@ -92,26 +99,60 @@ def step_rng(seed: int, step: int) -> tuple[np.random.Generator, jax.Array]:
 
 
 # ----------------------------------------------------------------------- checkpoints
-def save_checkpoint(path: Path, params, opt_state, step: int, extra: dict) -> None:
-    """Atomically write params, optimiser state and step (msgpack) plus a JSON sidecar
-    (``extra`` and the step) next to it."""
+class HostState(Protocol):
+    """State a training step keeps on the host besides params and optimiser state that
+    shapes its computation (e.g. neighbour-list capacities, which set the edge-array length
+    and so the floating-point summation order). :func:`fit` stores it in every checkpoint
+    and hands it back on resume, so a resumed run computes exactly what an uninterrupted one
+    does."""
+
+    def state_dict(self) -> dict:
+        """msgpack-able snapshot (str keys; ints, floats, lists, numpy arrays)."""
+        ...
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a :meth:`state_dict` snapshot."""
+        ...
+
+
+def save_checkpoint(path: Path, params, opt_state, step: int, extra: dict,
+                    host: dict | None = None) -> None:
+    """Atomically write params, optimiser state, step and ``host`` (a msgpack-able dict:
+    the seconds trained, the caller's :class:`HostState`) plus a JSON sidecar (``extra`` and
+    the step) next to it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    blob = serialization.to_bytes(dict(params=params, opt_state=opt_state,
-                                       step=np.asarray(step)))
+    state = serialization.to_state_dict(dict(params=params, opt_state=opt_state,
+                                             step=np.asarray(step)))
+    state["host"] = dict(host or {})
+    blob = serialization.msgpack_serialize(state)
     tmp = path.with_suffix(".tmp")
     tmp.write_bytes(blob)
     tmp.replace(path)
-    path.with_suffix(".json").write_text(json.dumps(dict(extra, step=step), indent=2,
-                                                    default=str))
+    side = path.with_suffix(".json")
+    side_tmp = side.with_suffix(".json.tmp")
+    side_tmp.write_text(json.dumps(dict(extra, step=step), indent=2, default=str))
+    side_tmp.replace(side)
+
+
+def _read_checkpoint(path: Path, params_template, opt_state_template):
+    raw = serialization.msgpack_restore(Path(path).read_bytes())
+    host = raw.pop("host", {}) or {}
+    target = dict(params=params_template, opt_state=opt_state_template, step=np.asarray(0))
+    d = serialization.from_state_dict(target, raw)
+    return d["params"], d["opt_state"], int(d["step"]), host
 
 
 def load_checkpoint(path: Path, params_template, opt_state_template):
     """Restore (params, opt_state, step) saved by :func:`save_checkpoint`; the templates
     give the pytree structure."""
-    target = dict(params=params_template, opt_state=opt_state_template, step=np.asarray(0))
-    d = serialization.from_bytes(target, Path(path).read_bytes())
-    return d["params"], d["opt_state"], int(d["step"])
+    return _read_checkpoint(path, params_template, opt_state_template)[:3]
+
+
+def checkpoint_host_state(path: Path) -> dict:
+    """The ``host`` dict of a checkpoint (``{}`` for one written before it existed):
+    ``seconds`` (float, training time so far) and ``state`` (the :class:`HostState`)."""
+    return serialization.msgpack_restore(Path(path).read_bytes()).get("host", {}) or {}
 
 
 def has_checkpoint(out: str | Path) -> bool:
@@ -120,38 +161,79 @@ def has_checkpoint(out: str | Path) -> bool:
 
 
 # ----------------------------------------------------------------------- the loop
-class TrainingInterrupted(SystemExit):
-    """Raised by :func:`fit` after a SIGTERM, once the checkpoint of the last completed step
-    is written. Uncaught, the process exits with status 143 (128 + SIGTERM) and no
-    traceback; running the same command again resumes from ``checkpoint``."""
+class TrainingInterrupted(SystemExit, Interrupted):  # type: ignore[misc]
+    """Raised by :func:`fit` after SIGINT (status 130) or SIGTERM (143), once the checkpoint
+    is written. Uncaught, the process exits with that status and no traceback; the command
+    line reports it as any interruption; running the same command again resumes from
+    ``checkpoint`` (a ``Path``) at ``step``."""
 
-    def __init__(self, step: int, checkpoint: Path):
-        super().__init__(128 + int(signal.SIGTERM))
+    def __init__(self, step: int, checkpoint: Path, signum: int = int(signal.SIGTERM)):
+        SystemExit.__init__(self, 128 + int(signum))
+        self.signum, self.code = int(signum), 128 + int(signum)
         self.step, self.checkpoint = step, checkpoint
+        self.detail = (f"checkpoint of step {step} written to {checkpoint}; run the same "
+                       "command again to resume")
+
+    def __str__(self) -> str:
+        return f"training interrupted by {signal.Signals(self.signum).name}; {self.detail}"
+
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 @contextlib.contextmanager
-def _sigterm_flag() -> Iterator[dict]:
-    """A dict whose ``"set"`` turns True on SIGTERM while the context is open (the handler is
-    installed only in the main thread, where Python delivers signals; restored after)."""
-    flag = {"set": False}
+def _signal_flag() -> Iterator[dict]:
+    """A dict whose ``"signum"`` becomes the number of the first SIGINT or SIGTERM received
+    while the context is open; a second SIGINT raises ``KeyboardInterrupt`` at once. The
+    handlers are installed only in the main thread, where Python delivers signals, and
+    restored after."""
+    flag: dict = {"signum": None}
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
 
     def handler(signum, frame):
-        flag["set"] = True
+        if flag["signum"] is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        flag["signum"] = flag["signum"] or signum
 
-    old = signal.signal(signal.SIGTERM, handler)
+    old = {s: signal.signal(s, handler) for s in _SIGNALS}
     try:
         yield flag
     finally:
-        signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
+        for s, h in old.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+def _trim_logs(out: Path, step: int) -> None:
+    """Drop the rows of ``train_log.csv`` and ``valid_log.jsonl`` after ``step`` (written
+    after the last checkpoint by a run that was then killed), so the resumed run's rows
+    follow on without repeats."""
+    log = out / "train_log.csv"
+    if log.exists():
+        lines = log.read_text().splitlines(keepends=True)
+        keep = lines[:1] + [r for r in lines[1:] if _int(r.split(",", 1)[0]) <= step]
+        if keep != lines:
+            log.write_text("".join(keep))
+    valid = out / "valid_log.jsonl"
+    if valid.exists():
+        lines = valid.read_text().splitlines(keepends=True)
+        keep = [r for r in lines if r.strip() and json.loads(r).get("step", 0) <= step]
+        if keep != lines:
+            valid.write_text("".join(keep))
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:  # a torn last line
+        return 1 << 62
 
 
 def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, info: dict,
         columns: Sequence[str], *, desc: str = "train", progress: bool = True,
-        validate: Callable[[Any], dict] | None = None, show: Sequence[str] = ()):
+        validate: Callable[[Any], dict] | None = None, show: Sequence[str] = (),
+        host_state: HostState | None = None):
     """Train from ``out``'s checkpoint (or from ``params``, ``opt_state`` at step 0).
 
     Args:
@@ -165,55 +247,72 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
         info: JSON-able run description written next to every checkpoint.
         validate: params -> {name: float}, run every ``validate_every`` steps and at the
             end; ``show`` names the metrics printed under the progress bar.
+        host_state: what else ``update`` keeps between steps that changes its result; saved
+            with every checkpoint and restored on resume (:class:`HostState`).
     Returns:
         (params, opt_state, step) with ``step == tcfg.steps``.
     Raises:
-        TrainingInterrupted: on SIGTERM, after writing the checkpoint.
+        TrainingInterrupted: on SIGINT or SIGTERM (or ``KeyboardInterrupt``), after
+            writing the checkpoint.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt, step = out / CHECKPOINT, 0
+    ckpt, step, seconds = out / CHECKPOINT, 0, 0.0
     if ckpt.exists():
-        params, opt_state, step = load_checkpoint(ckpt, params, opt_state)
+        params, opt_state, step, host = _read_checkpoint(ckpt, params, opt_state)
+        seconds = float(host.get("seconds", 0.0))
+        if host_state is not None and "state" in host:
+            host_state.load_state_dict(host["state"])
+        _trim_logs(out, step)
         print(f"resumed from {ckpt} at step {step}")
     lr = learning_rate(tcfg)
     log = (out / "train_log.csv").open("a")
     if step == 0:
         log.write(",".join(["step", *columns, "lr", "seconds"]) + "\n")
-    t0, hist = time.perf_counter(), []
+    t0, hist = time.perf_counter() - seconds, []
     bar = tqdm(total=tcfg.steps, initial=step, desc=desc, disable=not progress)
     done = (params, opt_state, step)  # the last completed step, stored in one assignment
+
+    def save(p, s, k):
+        host = dict(seconds=time.perf_counter() - t0)
+        if host_state is not None:
+            host["state"] = host_state.state_dict()
+        save_checkpoint(ckpt, p, s, k, info, host)
+
     try:
-        with _sigterm_flag() as term:
-            while step < tcfg.steps:
-                new_params, new_opt, metrics = update(params, opt_state, step)
-                done = (new_params, new_opt, step + 1)
-                params, opt_state, step = done
-                hist.append([float(m) for m in metrics])
-                bar.update(1)
-                last = step == tcfg.steps
-                if step % tcfg.log_every == 0 or last or term["set"]:
-                    mean = np.mean(hist, axis=0)
-                    log.write(f"{step}," + ",".join(f"{m:.6g}" for m in mean)
-                              + f",{float(lr(step)):.3g},{time.perf_counter() - t0:.1f}\n")
-                    log.flush()
-                    bar.set_postfix({c: f"{m:.4g}" for c, m in zip(columns, mean)})
-                    hist = []
-                if step % tcfg.checkpoint_every == 0 or last or term["set"]:
-                    save_checkpoint(ckpt, params, opt_state, step, info)
-                if term["set"]:
-                    bar.write(f"SIGTERM: checkpoint of step {step} written to {ckpt}; run "
-                              "the same command again to resume")
-                    raise TrainingInterrupted(step, ckpt)
-                if validate is not None and (step % tcfg.validate_every == 0 or last):
-                    res = {k: float(v) for k, v in validate(params).items()}
-                    with (out / "valid_log.jsonl").open("a") as f:
-                        f.write(json.dumps(dict(step=step, **res)) + "\n")
-                    if show:
-                        bar.write(f"step {step}: valid "
-                                  + ", ".join(f"{k} {res[k]:.3f}" for k in show))
-    except KeyboardInterrupt:
-        save_checkpoint(ckpt, *done, info)
+        try:
+            with _signal_flag() as sig:
+                while step < tcfg.steps:
+                    new_params, new_opt, metrics = update(params, opt_state, step)
+                    done = (new_params, new_opt, step + 1)
+                    params, opt_state, step = done
+                    hist.append([float(m) for m in metrics])
+                    bar.update(1)
+                    stop = sig["signum"] is not None
+                    last = step == tcfg.steps
+                    if step % tcfg.log_every == 0 or last or stop:
+                        mean = np.mean(hist, axis=0)
+                        log.write(f"{step}," + ",".join(f"{m:.6g}" for m in mean)
+                                  + f",{float(lr(step)):.3g},{time.perf_counter() - t0:.1f}\n")
+                        log.flush()
+                        bar.set_postfix({c: f"{m:.4g}" for c, m in zip(columns, mean)})
+                        hist = []
+                    if step % tcfg.checkpoint_every == 0 or last or stop:
+                        save(params, opt_state, step)
+                    if stop:
+                        raise TrainingInterrupted(step, ckpt, sig["signum"])
+                    if validate is not None and (step % tcfg.validate_every == 0 or last):
+                        res = {k: float(v) for k, v in validate(params).items()}
+                        with (out / "valid_log.jsonl").open("a") as f:
+                            f.write(json.dumps(dict(step=step, **res)) + "\n")
+                        if show:
+                            bar.write(f"step {step}: valid "
+                                      + ", ".join(f"{k} {res[k]:.3f}" for k in show))
+        except KeyboardInterrupt:
+            save(*done)
+            raise TrainingInterrupted(done[2], ckpt, int(signal.SIGINT)) from None
+    except TrainingInterrupted as e:
+        bar.write(f"{signal.Signals(e.signum).name}: {e.detail}", file=sys.stderr)
         raise
     finally:
         bar.close()

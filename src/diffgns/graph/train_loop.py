@@ -22,7 +22,7 @@ from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
-from diffgns.graph.training import Trainer, step_with_reallocation
+from diffgns.graph.training import NeighborLists, Trainer, step_with_reallocation
 from diffgns.models import model_path
 
 
@@ -157,7 +157,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source)
     (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
-    nbrs = {}
+    nbrs = NeighborLists()  # capacities checkpointed: exact resume
 
     def update(params, opt_state, step):
         rng, key = step_rng(tcfg.seed, step)
@@ -169,7 +169,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     validate = (lambda p: evaluate(gns, p, valid)["mean"]) if valid else None
     params, opt_state, step = fit(
         update, params, trainer.opt.init(params), tcfg, out, info, ["loss"], desc="train",
-        progress=progress, validate=validate,
+        progress=progress, validate=validate, host_state=nbrs,
         show=("runout_rel_error", "final_position_error_rel_displacement"))
     save_model(out / "model", gns, params, dict(info, steps=step))
     return gns, params
