@@ -120,8 +120,9 @@ def _dataset_cylinder(args) -> int:
 
 
 def _cylinder_recipe(args) -> dict:
-    """The fingerprint of a cylinder-flow dataset: every option that shapes it."""
-    names = ("n", "seed", "frames", "re_range", "u_max_range", "radius_range", "cx_range",
+    """The fingerprint of a cylinder-flow dataset: every option that shapes its trajectories
+    (not ``--n``: trajectory i depends on the seed and i alone, so a resume may add more)."""
+    names = ("seed", "frames", "re_range", "u_max_range", "radius_range", "cx_range",
              "cy_range", "frame_dt", "spinup", "size_cylinder", "size_far", "grading",
              "size_wake", "cfl")
     return dict(kind="cylinder", **{k: getattr(args, k) for k in names})

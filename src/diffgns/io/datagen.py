@@ -55,10 +55,11 @@ def column_scenes(aspect_ratios, friction_angles, width: float = 0.1, cells_acro
                                       **scene_kw)
 
 
-def squares_recipe(n: int, n_frames: int, seed: int = 0, **scene_kw) -> dict:
-    """The fingerprint of a granular-squares dataset (JSON-serialisable)."""
-    return dict(kind="squares", n=int(n), n_frames=int(n_frames), seed=int(seed),
-                dtype=_float_dtype(), **scene_kw)
+def squares_recipe(n_frames: int, seed: int = 0, **scene_kw) -> dict:
+    """The fingerprint of a granular-squares dataset (JSON-serialisable); not the number of
+    flows: flow i depends on the seed and i alone, so a resume may add more."""
+    return dict(kind="squares", n_frames=int(n_frames), seed=int(seed), dtype=_float_dtype(),
+                **scene_kw)
 
 
 def square_scenes(n: int, seed: int = 0, **scene_kw) -> Iterator[Scene]:
@@ -128,7 +129,7 @@ def generate_squares(path, n: int, n_frames: int, seed: int = 0, progress: bool 
     """Write ``n`` granular-square flows (random 1-2 masses and velocities) to ``path``."""
     extra = dict(kind="squares", n_frames=n_frames, seed=seed)
     dx = scene_kw.get("dx", 0.02)
-    recipe = squares_recipe(n, n_frames, seed, **scene_kw)
+    recipe = squares_recipe(n_frames, seed, **scene_kw)
     with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w:
         scenes = square_scenes(n, seed, **scene_kw)
         for i in tqdm(range(n), desc="square flows", disable=not progress):
