@@ -211,6 +211,13 @@ def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
         assert len(again) == 2 and not out.with_name("cols.h5.partial").exists()
         np.testing.assert_array_equal(np.asarray(again[0].positions),
                                       np.asarray(kept[0].positions))
+        clean = tmp_path / "clean.h5"  # bit-identical to an uninterrupted run
+        assert main([*argv[:-1], str(clean)]) == 0
+        with h5py.File(out, "r") as a, h5py.File(clean, "r") as b:
+            assert sorted(a) == sorted(b)
+            for k in b:
+                for name in b[k]:
+                    np.testing.assert_array_equal(a[k][name][()], b[k][name][()])
 
 
 def test_cylinder_resume_with_another_recipe_refused(tmp_path, capsys):
