@@ -23,7 +23,7 @@ from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.training import NeighborLists, Trainer, step_with_reallocation
-from diffgns.models import model_path
+from diffgns.models import model_dir, model_path
 
 
 def save_model(out: Path, gns: GNS, params, info: dict) -> None:
@@ -41,9 +41,10 @@ def save_model(out: Path, gns: GNS, params, info: dict) -> None:
 
 
 def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
-    """(GNS, params, info) from a model folder written by :func:`save_model`, or a
-    shipped model's name (:func:`diffgns.models.model_path`)."""
-    path = model_path(path)  # a folder, or the name of a shipped model
+    """(GNS, params, info) from a model folder written by :func:`save_model`, a training
+    run folder holding one in ``model/``, or a shipped model's name
+    (:func:`diffgns.models.model_dir`; a wrong path raises its ``ModelFolderError``)."""
+    path = model_dir(path, "config.json")
     info = json.loads((path / "config.json").read_text())
     g = dict(info["gns"])
     g["bounds"] = tuple(tuple(b) for b in g["bounds"])
@@ -68,8 +69,7 @@ def average_models(paths, out: str | Path) -> Path:
     if len(paths) < 2:
         raise ValueError("average_models needs at least two models")
     for p in paths:
-        if "gns" not in json.loads((Path(p) / "config.json").read_text()):
-            raise ValueError(f"{p} is not a particle GNS model folder")
+        _gns_folder(p)
     models = [load_model(p) for p in paths]
     g0, _, info0 = models[0]
     for p, (g, _, info) in zip(paths[1:], models[1:]):
@@ -111,6 +111,18 @@ def _initial_model(path, gns: GNS):
         raise ValueError(f"--init-from model {path} has a different configuration: "
                          f"(model, requested) = {diff}")
     return GNS(gns.config, base.normalizer, gns.frame_dt), params
+
+
+def _gns_folder(p) -> Path:
+    """The particle-GNS model folder of ``p`` (itself or ``p/model``); ValueError if its
+    ``config.json`` describes another network, ``ModelFolderError`` if there is none."""
+    path = model_path(p)
+    for folder in (path, path / "model"):
+        if (folder / "config.json").is_file():
+            if "gns" not in json.loads((folder / "config.json").read_text()):
+                raise ValueError(f"{p} is not a particle GNS model folder")
+            return folder
+    return model_dir(p, "config.json")
 
 
 def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:

@@ -38,7 +38,7 @@ from diffgns.mesh.meshnet import (
     mesh_edges,
     pad_mesh,
 )
-from diffgns.models import model_path
+from diffgns.models import model_dir as _model_folder
 
 
 def load_cylinder(path: str | Path) -> list[dict]:
@@ -132,9 +132,10 @@ def save_model(out: Path, model: MeshNet, params, padding, info: dict) -> None:
 
 
 def load_model(path: str | Path):
-    """(model, params, info) from a folder written by :func:`save_model`, or a
-    shipped model's name (:func:`diffgns.models.model_path`)."""
-    path = model_path(path)  # a folder, or the name of a shipped model
+    """(model, params, info) from a folder written by :func:`save_model`, a training run
+    folder holding one in ``model/``, or a shipped model's name
+    (:func:`diffgns.models.model_dir`; a wrong path raises its ``ModelFolderError``)."""
+    path = _model_folder(path, "model.json")
     info = json.loads((path / "model.json").read_text())
     s = info["stats"]
     f = jnp.result_type(float)
