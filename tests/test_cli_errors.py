@@ -90,6 +90,7 @@ def tiny(tmp_path_factory) -> Path:
                       frame_dt=2.5e-3, bounds=((0.0, 1.0), (0.0, 1.0)))
     with DatasetWriter(path, recipe=recipe) as w:
         w.write("00000", traj)
+        w.finalize(connectivity_radius=0.05)
     return path
 
 
@@ -118,11 +119,22 @@ def test_missing_or_truncated_input_refused(tmp_path, capsys, truncated, command
         assert not (tmp_path / "runs").exists()  # no empty output folder
 
 
-def test_model_path_one_level_off_refused(tmp_path, capsys, tiny):
+def test_model_path_that_does_not_exist_refused(tmp_path, capsys, tiny):
     capsys.readouterr()
-    err = _refused(["rollout", "--model", "models/gns_columns/model", "--data", str(tiny),
-                    "--out", str(tmp_path / "r")], capsys, "--model")
-    assert "config.json" in err and not (tmp_path / "r").exists()
+    err = _refused(["rollout", "--model", str(tmp_path / "runs" / "gns" / "model"), "--data",
+                    str(tiny), "--out", str(tmp_path / "r")], capsys, "--model")
+    assert "not an existing path" in err and not (tmp_path / "r").exists()
+
+
+def test_dataset_without_metadata_refused_by_train_and_rollout(tmp_path, capsys, tiny):
+    bare = tmp_path / "bare.h5"
+    bare.write_bytes(tiny.read_bytes())  # no bare.metadata.json beside it
+    capsys.readouterr()
+    for argv in (["train", "--data", str(bare)], ["rollout", "--model", "gns_columns",
+                                                  "--data", str(bare)]):
+        err = _refused([*argv, "--out", str(tmp_path / "o")], capsys, "--data")
+        assert "has no metadata" in err and "bare.metadata.json" in err
+    assert not (tmp_path / "o").exists()
 
 
 def test_resume_with_another_recipe_refused(tmp_path, capsys, tiny):

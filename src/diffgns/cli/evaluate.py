@@ -16,7 +16,7 @@ def _is_mesh_model(path) -> bool:
 def _rollout(args) -> int:
     from diffgns.io.files import check_input_file
 
-    check_input_file(args.data, "--data")
+    check_input_file(args.data, "--data", metadata=True)
     args.model = model_folder(args.model)
     if _is_mesh_model(args.model):
         return _rollout_mesh(args)

@@ -11,9 +11,9 @@ from diffgns.io.files import check_input_file
 def _check_inputs(args) -> None:
     """Refuse missing or unreadable datasets before anything is created."""
     for path in args.data:
-        check_input_file(path, "--data")
+        check_input_file(path, "--data", metadata=True)
     if args.valid:
-        check_input_file(args.valid, "--valid")
+        check_input_file(args.valid, "--valid", metadata=True)
 
 def _train(args) -> int:
     _check_inputs(args)

@@ -70,15 +70,22 @@ def check_h5_file(path: str | Path, field: str, trajectories: bool = False) -> N
                          "give a dataset written by diffgns dataset/simulate")
 
 
-def check_input_file(path: str | Path, field: str) -> None:
+def check_input_file(path: str | Path, field: str, metadata: bool = False) -> None:
     """Refuse (:class:`~diffgns.errors.InputError`) a dataset file that is missing or
-    unreadable: an HDF5 file must open and hold a trajectory, an ``.npz`` must exist."""
+    unreadable: an HDF5 file must open and hold a trajectory (and, with ``metadata``, have
+    its ``<stem>.metadata.json`` or a ``metadata.json`` beside it), an ``.npz`` must exist."""
     path = Path(path)
     if path.suffix == ".npz":
         if not path.is_file():
             raise InputError(field, f"{path} does not exist", "check the path")
         return
     check_h5_file(path, field, trajectories=True)
+    candidates = [path.with_name(f"{path.stem}.metadata.json"), path.with_name("metadata.json")]
+    if metadata and not any(c.is_file() for c in candidates):
+        raise InputError(field, f"{path} has no metadata (looked for "
+                         f"{', '.join(c.name for c in candidates)} beside it)",
+                         "copy the dataset with its metadata file, or regenerate it with "
+                         "diffgns dataset")
 
 
 def new_dirs(path: str | Path) -> list[Path]:
