@@ -134,3 +134,20 @@ def test_ctrl_c_keeps_the_last_completed_step(tmp_path):
     assert step == 7
     ref, _, _ = _fit(tmp_path / "ref", 7)
     np.testing.assert_array_equal(np.asarray(p["w"]), np.asarray(ref["w"]))
+
+
+def test_resume_after_a_hard_kill_drops_later_log_rows_and_keeps_counting_seconds(tmp_path):
+    """Killed (SIGKILL) after logging steps the checkpoint does not hold: the resumed run
+    drops those rows and logs them again; ``seconds`` continues from the checkpoint."""
+    _fit(tmp_path, 20, validate=lambda p: {"e": 0.0})
+    log, valid = tmp_path / "train_log.csv", tmp_path / "valid_log.jsonl"
+    with log.open("a") as f:  # written after the checkpoint at 20, then killed
+        f.write("25,1,2,0.1,999.0\n26,1")
+    with valid.open("a") as f:
+        f.write(json.dumps({"step": 25, "e": 1.0}) + "\n")
+    before = float(list(csv.DictReader(log.open()))[3]["seconds"])
+    _fit(tmp_path, 30, validate=lambda p: {"e": 0.0})
+    rows = list(csv.DictReader(log.open()))
+    assert [int(r["step"]) for r in rows] == [5, 10, 15, 20, 25, 30]
+    assert float(rows[4]["seconds"]) >= before and float(rows[4]["seconds"]) != 999.0
+    assert [json.loads(s)["step"] for s in valid.read_text().splitlines()] == [10, 20, 30]
