@@ -30,7 +30,7 @@ BOUNDS = ((0.0, 1.0), (0.0, 1.0))
 GNS_KW = dict(bounds=BOUNDS, radius=0.045, latent=8, mp_steps=1, mlp_layers=1, noise_std=1e-4)
 
 
-def _blocks(spacings=(0.018, 0.021, 0.024), frames=10, seed=0):
+def _blocks(spacings=(0.018, 0.024), frames=10, seed=0):
     """4x4 lattice blocks falling at constant acceleration, one lattice spacing (m) per
     trajectory: each needs a different number of neighbour-list slots, so the capacity of
     the list depends on which trajectory the run happened to allocate it from."""
