@@ -170,6 +170,25 @@ def test_help_imports_no_jax():
     assert "diffgns: error: --frames: 0 is not a count" in r.stderr
 
 
+@pytest.mark.parametrize("argv, message", [
+    (["dataset", "--kind", "column", "--friction-angles", "95", "--out", "x.h5"],
+     "--friction-angles: Sand.friction_angle = 95.0 is outside (0, 90)"),
+    (["dataset", "--kind", "squares", "--n", "2", "--size", "9", "--out", "x.h5"],
+     "--size, --dx: squares of 9 m do not fit"),
+])
+def test_scene_rule_errors_import_no_jax(tmp_path, argv, message):
+    """Recipes are validated by building their scenes (diffgns.scene.recipes), which needs
+    no JAX: the refusal prints before any heavy import (fast CLI)."""
+    code = ("import sys, diffgns.cli as c; rc = c.main(sys.argv[1:]); "
+            "print(rc, sorted(m for m in ('jax', 'jax_md', 'flax', 'h5py', 'optax') "
+            "if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                       timeout=60, cwd=tmp_path)
+    assert r.stdout.strip() == "2 []", r.stdout + r.stderr
+    assert message in r.stderr
+    assert not list(tmp_path.iterdir())
+
+
 def test_public_names_still_import():
     import diffgns
 

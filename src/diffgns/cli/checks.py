@@ -125,7 +125,7 @@ def check_dataset(args) -> None:
         if path.exists():
             check_h5_file(path, "--out")
     if args.kind == "column":
-        from diffgns.io.datagen import column_scenes
+        from diffgns.scene.recipes import column_scenes
 
         try:
             for _ in column_scenes(args.aspect_ratios, args.friction_angles, width=args.width,
@@ -136,7 +136,7 @@ def check_dataset(args) -> None:
         except (SceneError, ValueError, ArithmeticError) as e:
             raise _scene_refusal(e, "--aspect-ratios", "check the column options") from None
     elif args.kind == "squares":
-        from diffgns.io.datagen import square_scenes
+        from diffgns.scene.recipes import square_scenes
 
         try:
             for _ in square_scenes(args.n, args.seed, **squares_kw(args)):
@@ -173,11 +173,14 @@ def check_simulate(args):
 
 
 def model_folder(name: str, field: str = "--model"):
-    """:func:`diffgns.models.model_path` of ``name``, its FileNotFoundError as an InputError."""
-    from diffgns.models import model_path
+    """The model folder of ``name`` (:func:`diffgns.models.model_dir`: the folder itself or
+    a run's ``model/``), a missing or incomplete folder as an InputError on ``field``."""
+    from diffgns.models import ModelFolderError, model_dir
 
     try:
-        return model_path(name)
+        return model_dir(name)
+    except ModelFolderError as e:
+        raise InputError(field, e.problem, e.fix) from None
     except FileNotFoundError as e:
         raise InputError(field, str(e), "give a model folder (config.json, params.msgpack) "
                          "or a shipped model name (see models/)") from None

@@ -11,8 +11,6 @@ the trajectories), and resuming with another recipe is refused before anything i
 """
 from __future__ import annotations
 
-import itertools
-from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
@@ -25,15 +23,9 @@ from diffgns.interface import rollout
 from diffgns.io.dataset import DatasetWriter
 from diffgns.mpm import MPM
 from diffgns.mpm.solver import max_speed
-from diffgns.scene import Scene
-from diffgns.scene.builders import column_collapse, granular_squares
+from diffgns.scene.builders import column_collapse
+from diffgns.scene.recipes import column_samples, square_scenes
 from diffgns.trajectory import Trajectory
-
-
-def column_samples(aspect_ratios, friction_angles) -> list[dict]:
-    """The grid of (aspect ratio, friction angle) samples, in storage order."""
-    return [dict(aspect_ratio=float(a), friction_angle=float(p))
-            for a, p in itertools.product(aspect_ratios, friction_angles)]
 
 
 def column_recipe(aspect_ratios, friction_angles, n_frames: int, width: float = 0.1,
@@ -45,27 +37,11 @@ def column_recipe(aspect_ratios, friction_angles, n_frames: int, width: float = 
                 **scene_kw)
 
 
-def column_scenes(aspect_ratios, friction_angles, width: float = 0.1, cells_across: int = 10,
-                  **scene_kw) -> Iterator[tuple[dict, Scene]]:
-    """(sample, scene) of every sample of :func:`column_samples`, built (so validated) with
-    :func:`~diffgns.scene.builders.column_collapse`; raises its SceneError on the first bad
-    one."""
-    for sample in column_samples(aspect_ratios, friction_angles):
-        yield sample, column_collapse(width=width, cells_across=cells_across, **sample,
-                                      **scene_kw)
-
-
 def squares_recipe(n_frames: int, seed: int = 0, **scene_kw) -> dict:
     """The fingerprint of a granular-squares dataset (JSON-serialisable); not the number of
     flows: flow i depends on the seed and i alone, so a resume may add more."""
     return dict(kind="squares", n_frames=int(n_frames), seed=int(seed), dtype=_float_dtype(),
                 **scene_kw)
-
-
-def square_scenes(n: int, seed: int = 0, **scene_kw) -> Iterator[Scene]:
-    """The ``n`` scenes of :func:`generate_squares`, built (so validated) in order."""
-    for i in range(n):
-        yield granular_squares(seed=seed * 100003 + i, **scene_kw)
 
 
 def _float_dtype() -> str:

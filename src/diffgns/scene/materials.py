@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-
-import jax
-import jax.numpy as jnp
-from jax.typing import ArrayLike
+from typing import TYPE_CHECKING
 
 from diffgns.errors import SceneError
+
+if TYPE_CHECKING:  # jax is imported where it is used: scene checks stay light (fast CLI)
+    import jax
+    from jax.typing import ArrayLike
 
 
 def _positive(value: float, field: str, owner: str, hint: str) -> None:
@@ -49,6 +50,8 @@ def friction_feature(phi_deg: ArrayLike) -> jax.Array:
     coefficient), differentiable:
     ``d tan(phi) / d phi_deg = (pi / 180) / cos(phi)^2``. The only place diffgns computes it.
     """
+    import jax.numpy as jnp
+
     return jnp.tan(jnp.deg2rad(phi_deg))
 
 
