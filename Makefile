@@ -27,7 +27,8 @@ demo: $(VENV)/.installed-test
 collapse: $(VENV)/.installed-test
 	$(PY) examples/column_collapse_demo.py --out results/demo
 
-# recover the n-body force laws from the shipped message networks (~17 min)
+# recover the n-body force laws from the shipped message networks (~30 CPU-min, a fixed
+# budget of generations: the same answer on any machine)
 symbolic: $(VENV)/.installed-test
 	$(PY) examples/symbolic_regression.py --out results/symbolic
 
@@ -68,11 +69,13 @@ BENCH = --wait-quiet $(BENCH_WAIT)
 bench: $(VENV)/.installed-bench $(VENV)/.installed-test
 	$(PY) benchmarks/mpm_throughput.py $(BENCH)
 	$(PY) benchmarks/mpm_vs_taichi.py $(BENCH)
+	$(PY) benchmarks/mpm_profile.py $(BENCH)
 	$(PY) benchmarks/mpm_effects.py $(BENCH)
 	$(PY) benchmarks/mpm_grad_memory.py $(BENCH)
 	$(PY) benchmarks/runout_gradients.py
 	$(PY) benchmarks/gns_vs_torch.py --sides 22 32 45 $(BENCH)
 	$(PY) benchmarks/gns_configs_cost.py $(BENCH)
+	$(PY) benchmarks/scaling.py $(BENCH)
 
 # GNS accuracy and the hybrid Pareto front need the datasets of the model cards (data/)
 bench-gns: $(VENV)/.installed-test

@@ -84,9 +84,9 @@ def test_message_stats_fit_the_samples_and_round_trip(samples):
 def test_shipped_message_nets_load_with_their_normaliser(name):
     import json
 
-    from diffgns.models import model_path
+    from diffgns.models import model_dir
 
-    folder = model_path(name) / "model"
+    folder = model_dir(name)
     net, norm, params, _ = message_net.load(folder)
     saved = json.loads((folder / "model.json").read_text())["normaliser"]
     for k, v in norm.to_dict().items():

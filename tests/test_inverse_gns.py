@@ -126,9 +126,9 @@ def test_column_observation_operator_and_model_checks(tmp_path):
                       observed=np.zeros((10, 64, 2)), loaded=loaded)
     with pytest.raises(ValueError, match="observed trajectory"):
         gns_simulator(col, loaded=loaded)
-    with pytest.raises(FileNotFoundError, match="not a shipped model"):
+    with pytest.raises(FileNotFoundError, match="nor a shipped model"):
         load_gns("/nonexistent/model")
-    with pytest.raises(FileNotFoundError, match="no GNS model"):
+    with pytest.raises(FileNotFoundError, match="not a model folder.*lacks"):
         load_gns(tmp_path)  # a folder without config.json
     hyb = hybrid_simulator(col, loaded=loaded)  # the hybrid hook: same observation operator
     assert hyb.n_frames == col.n_obs - 1 and callable(hyb.simulate)

@@ -59,8 +59,9 @@ def _symbolic(args) -> int:
 
 
 def build_parser(argv=None) -> Parser:
-    """The ``diffgns`` parser (``argv``: the symbolic command's options are added only when
-    it is the command, as they import the symbolic-regression code)."""
+    """The ``diffgns`` parser. ``argv`` is accepted for compatibility and unused: every
+    subcommand's options, the symbolic command's too (:mod:`diffgns.interpret.options`),
+    are defined without importing JAX."""
     p = Parser(prog="diffgns", description=DESCRIPTION,
                formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, metavar="<command>")
@@ -68,11 +69,9 @@ def build_parser(argv=None) -> Parser:
         group.register(sub)
     y = sub.add_parser("symbolic", help="recover n-body force laws from a message network "
                        "by symbolic regression")
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["symbolic"]:
-        from diffgns.interpret.pipeline import add_arguments
+    from diffgns.interpret.options import add_arguments
 
-        add_arguments(y)
+    add_arguments(y)
     y.set_defaults(func=_symbolic)
     return p
 

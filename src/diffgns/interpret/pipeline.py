@@ -48,7 +48,15 @@ from diffgns.graph.training import TrainConfig
 from diffgns.interpret import message_net, messages, nbody_data, symbolic
 from diffgns.interpret.nbody import NBodyConfig
 from diffgns.interpret.nbody_data import EDGE_UNITS
-from diffgns.models import models_root
+from diffgns.interpret.options import (  # noqa: F401  (re-exported)
+    LAWS,
+    SR_GENERATIONS,
+    SR_MAX_SECONDS,
+    SR_POPULATION,
+    VARIANT_NAMES,
+    add_arguments,
+)
+from diffgns.models import model_dir
 
 SYSTEMS = {
     "spring": NBodyConfig(),
@@ -64,11 +72,10 @@ VARIANTS = {
                                                 node_l2=0.0), (8000,)),
 }
 FRAMES = {"spring": 500, "inverse_square": 500}
+if set(SYSTEMS) != set(LAWS) or set(VARIANTS) != set(VARIANT_NAMES):  # the light CLI options
+    raise ImportError("diffgns.interpret.options names other laws/variants than pipeline")
 # symbolic-regression budget per search: counts, never seconds, so that the selection does not
 # depend on the machine (SR_MAX_SECONDS is only a safety cap that raises)
-SR_GENERATIONS = 200
-SR_POPULATION = 1000
-SR_MAX_SECONDS = 3600.0
 EQUIV_TOL = 0.01
 """Relative tolerance of :func:`check_law` (1%)."""
 FORCE_FEATURES = ["d", "m_i", "m_j", "r_i", "r_j"]
@@ -185,8 +192,11 @@ def plot_fronts(fronts: dict, path: Path) -> None:
 
 
 def model_folder(models: str | Path, law: str, variant: str) -> Path:
-    """Where the shipped ``variant`` network of ``law`` lives under ``models``."""
-    return Path(models) / (f"message_net_{law}" + ("_l1" if variant == "l1" else "")) / "model"
+    """The folder of the ``variant`` network of ``law`` under ``models``
+    (``message_net_<law>[_l1]``, or its ``model/`` sub-folder in the earlier layout; see
+    :func:`diffgns.models.model_dir`); raises ModelFolderError naming what is missing."""
+    name = f"message_net_{law}" + ("_l1" if variant == "l1" else "")
+    return model_dir(Path(models) / name, "model.json")
 
 
 def train_network(samples: dict, out: str | Path, variant: str, train_steps: int | None = None,
@@ -284,43 +294,6 @@ def run(law: str, out: str | Path, data_dir: str | Path = "data/nbody", model: s
     plot_fronts(fronts, out / "front.png")
     (out / "results.json").write_text(json.dumps(res, indent=2, default=str))
     return res
-
-
-def add_arguments(parser) -> None:
-    """Command-line options of ``diffgns symbolic`` / ``examples/symbolic_regression.py``."""
-    parser.add_argument("--law", choices=[*SYSTEMS, "both"], default="both",
-                        help="force law to recover (default: both)")
-    parser.add_argument("--out", default="results/symbolic",
-                        help="output folder: <out>/<law>/fronts.md, front.png, results.json")
-    parser.add_argument("--data-dir", default="data/nbody",
-                        help="n-body datasets, generated (seeded) if missing")
-    parser.add_argument("--variant", choices=sorted(VARIANTS), default="l1",
-                        help="message network: L1-penalised, dimension 100 (models/"
-                             "message_net_<law>_l1), or bottleneck, dimension 2 "
-                             "(models/message_net_<law>)")
-    parser.add_argument("--models", default=str(models_root()),
-                        help="folder holding the shipped message networks")
-    parser.add_argument("--train", action="store_true",
-                        help="train a new message network instead of loading the shipped one "
-                             "(its recipe: 100,000 steps for l1, 8,000 for bottleneck)")
-    parser.add_argument("--train-steps", type=int, default=None,
-                        help="train this many steps in one stage instead of the recipe")
-    parser.add_argument("--sr-samples", type=int, default=5000,
-                        help="test edges given to each symbolic regression (default 5000)")
-    parser.add_argument("--sr-generations", type=int, default=SR_GENERATIONS,
-                        help=f"generations per search (default {SR_GENERATIONS}); the search "
-                             "budget is a count, so the answer does not depend on the machine")
-    parser.add_argument("--sr-population", type=int, default=SR_POPULATION,
-                        help=f"expressions per generation (default {SR_POPULATION})")
-    parser.add_argument("--sr-max-seconds", type=float, default=SR_MAX_SECONDS,
-                        help=f"safety cap per search in s (default {SR_MAX_SECONDS:g}): a "
-                             "search reaching it stops the command with an error instead of "
-                             "returning a machine-dependent answer")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="pyoperon threads (default 1; results are reproducible with 1 "
-                             "and depend on the count, as on --seed)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of every random choice: edge sampling and the searches")
 
 
 def _positive(args) -> str | None:

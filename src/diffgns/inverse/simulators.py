@@ -207,13 +207,11 @@ class HybridSimulator:
 
 
 def _model_folder(model: str | Path) -> Path:
-    from diffgns.models import model_path
+    """The folder holding a particle GNS's ``config.json`` and weights (ModelFolderError,
+    a FileNotFoundError, naming what is missing otherwise)."""
+    from diffgns.models import model_dir
 
-    path = model_path(model)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"no GNS model in {path} (config.json missing); pass "
-                                "--model gns_columns or train one with `diffgns train`")
-    return path
+    return model_dir(model, "config.json")
 
 
 def model_info(model: str | Path = DEFAULT_MODEL) -> dict:
