@@ -23,6 +23,11 @@ The rules:
   ``torch.set_num_threads`` and ``ti.init(cpu_max_num_threads=...)``. ``--threads both``
   measures with 2 threads in this process, then runs the pinned 1-thread variant as a child
   (:meth:`Run.pinned_child`) so that the report gives both ratios.
+* **Stolen CPU.** On a virtual machine the host may take CPU time from it (``steal`` in
+  ``/proc/stat``), which the load average does not show: on 2026-12-03 this machine lost
+  ~40% of its CPU time that way at a load of 0.2, and ran 2-2.6x slower. The steal share
+  during the run is recorded; a timed run that lost more than ``MAX_STEAL`` (10%) is
+  written with ``"valid": false`` and an ``invalid_reason``.
 * **Record.** Every JSON holds ``valid``, the load before and after, the date (UTC), the git
   commit, the command line, the CPU model and the thread setting (``protocol`` block), next
   to the machine and software description (``machine`` block).
@@ -55,6 +60,7 @@ REPO_DIR = BENCH_DIR.parent
 RESULTS_DIR = BENCH_DIR / "results"
 
 MAX_LOAD = 1.0
+MAX_STEAL = 0.10  # a run whose CPU steal exceeded this share is marked (not refused)
 EXIT_LOADED = 3
 PIN_CPU = 0
 QUIET_WAIT_BETWEEN_PHASES_S = 300.0
@@ -71,6 +77,34 @@ LoadReader = Callable[[], tuple[float, float, float]]
 def read_load() -> tuple[float, float, float]:
     """The 1-, 5- and 15-minute load averages (tests replace this function)."""
     return tuple(os.getloadavg())  # type: ignore[return-value]
+
+
+def read_cpu_times() -> tuple[int, int] | None:
+    """(steal, total) CPU ticks since boot from ``/proc/stat`` (None off Linux)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return None
+    ticks = [int(f) for f in fields[:8]]  # user nice system idle iowait irq softirq steal
+    return (ticks[7] if len(ticks) > 7 else 0), sum(ticks)
+
+
+def steal_fraction(before: tuple[int, int] | None, after: tuple[int, int] | None
+                   ) -> float | None:
+    """Share of CPU time the hypervisor took from this virtual machine between two
+    :func:`read_cpu_times` readings (None when unknown). The load average does not see it:
+    a virtual machine whose host is busy runs slower at load 0."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return (after[0] - before[0]) / (after[1] - before[1])
+
+
+def sample_steal(seconds: float = 2.0, sleep: Callable[[float], None] = time.sleep
+                 ) -> float | None:
+    """The steal fraction over the next ``seconds``."""
+    before = read_cpu_times()
+    sleep(seconds)
+    return steal_fraction(before, read_cpu_times())
 
 
 # ------------------------------------------------------------------ command line
@@ -149,6 +183,8 @@ class Run:
     allow_loaded: bool = False
     timed: bool = True
     result_to: str | None = None
+    cpu_at_start: tuple[int, int] | None = field(default_factory=lambda: read_cpu_times())
+    steal_at_start: float | None = None
     started_utc: str = field(default_factory=lambda: _now())
     argv: list[str] = field(default_factory=lambda: list(sys.argv))
 
@@ -185,6 +221,9 @@ class Run:
             "allow_loaded": self.allow_loaded,
             "load_before_1_5_15": list(self.load_before),
             "load_after_1_5_15": list((read or read_load)()),
+            "cpu_steal_at_start": self.steal_at_start,
+            "cpu_steal_during_run": steal_fraction(self.cpu_at_start, read_cpu_times()),
+            "max_steal": MAX_STEAL,
             "date_utc": self.started_utc,
             "finished_utc": _now(),
             "git_commit": git_commit(),
@@ -199,6 +238,13 @@ class Run:
         """The JSON document: ``valid``, ``protocol``, ``machine``, then ``payload``."""
         meta = self.metadata(read)
         valid = meta["valid"]
+        steal = meta["cpu_steal_during_run"]
+        if self.timed and steal is not None and steal > MAX_STEAL:
+            valid = meta["valid"] = False  # the host took the CPU: as good as a loaded run
+            meta["invalid_reason"] = (f"CPU steal {steal:.0%} of the run's CPU time > "
+                                      f"{MAX_STEAL:.0%} (the virtual machine's host was busy)")
+            print(f"INVALID {self.name}: {meta['invalid_reason']}", file=sys.stderr,
+                  flush=True)
         child = payload.get("one_thread_pinned")
         if isinstance(child, Mapping) and child.get("valid") is False:
             valid = False  # a combined report is as valid as its weakest part
@@ -289,9 +335,15 @@ def start(args: argparse.Namespace, name: str, timed: bool = True,
               file=sys.stderr, flush=True)
         sys.exit(EXIT_LOADED)
     threads = 1 if pinned or args.threads == "1" else 2
+    steal = sample_steal(1.0, sleep) if timed else None
+    if steal is not None and steal > MAX_STEAL:
+        print(f"warning: {name}: the host took {steal:.0%} of this machine's CPU in the last "
+              "second (steal); the run will be marked invalid if that goes on",
+              file=sys.stderr, flush=True)
     return Run(name=name, valid=quiet or not timed, load_before=load, max_load=args.max_load,
                threads=threads, pinned=pinned, mode=args.threads,
-               allow_loaded=args.allow_loaded, timed=timed, result_to=args.result_to)
+               allow_loaded=args.allow_loaded, timed=timed, result_to=args.result_to,
+               steal_at_start=steal)
 
 
 def wait_for_quiet(max_load: float, timeout_s: float, read: LoadReader | None = None,

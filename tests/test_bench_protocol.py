@@ -23,8 +23,16 @@ def parse(*argv: str) -> argparse.Namespace:
 
 
 def start(*argv: str, load=QUIET, environ=None, **kw) -> protocol.Run:
+    kw.setdefault("sleep", lambda s: None)
     return protocol.start(parse(*argv), "bench", read=lambda: load,
                           environ={} if environ is None else environ, **kw)
+
+
+@pytest.fixture(autouse=True)
+def no_steal(monkeypatch):
+    """A virtual machine whose host takes nothing (the real one's steal varies)."""
+    ticks = iter(range(0, 10**9, 1000))
+    monkeypatch.setattr(protocol, "read_cpu_times", lambda: (0, next(ticks)))
 
 
 # ------------------------------------------------------------------ load check
@@ -99,6 +107,25 @@ def test_json_records_validity_load_and_machine(tmp_path):
     assert p["threads"] == 2 and p["date_utc"].endswith("+00:00")
     assert "python" in doc["machine"] and "cpu_count" in doc["machine"]
     assert start(load=QUIET).document({})["valid"] is True
+
+
+def test_cpu_stolen_by_the_host_marks_a_quiet_run_invalid(monkeypatch, capsys):
+    # start: two readings (1 s sample, no steal), then the run start and its end: 30% stolen
+    readings = iter([(0, 0), (0, 100), (0, 0), (300, 1000)])
+    monkeypatch.setattr(protocol, "read_cpu_times", lambda: next(readings))
+    run = start(load=QUIET)
+    doc = run.document({})
+    assert doc["valid"] is False and doc["protocol"]["cpu_steal_during_run"] == 0.3
+    assert "steal 30%" in doc["protocol"]["invalid_reason"]
+    assert "INVALID bench: CPU steal 30%" in capsys.readouterr().err
+    assert protocol.steal_fraction((0, 0), (50, 1000)) == 0.05  # below the 10% threshold
+    assert protocol.steal_fraction(None, (1, 2)) is None
+
+
+def test_steal_is_read_from_proc_stat():
+    now = protocol.read_cpu_times()
+    if Path("/proc/stat").exists():
+        assert now is not None and 0 <= now[0] <= now[1]
 
 
 def test_combined_report_is_invalid_if_its_pinned_part_is():

@@ -19,6 +19,9 @@ def test_simulate_column_writes_outputs(tmp_path):
         assert (out / f).exists(), f
     s = json.loads((out / "summary.json").read_text())
     assert s["frames"] == 21 and s["final_runout_m"] > 0.095  # outermost particle starts at 0.095
+    # both runouts are named: the farthest particle (the plot's curve) and the deposit front
+    assert set(s["runout_definitions"]) == {"final_runout_m", "deposit_front_m"}
+    assert 0 < s["deposit_front_m"] <= s["final_runout_m"] + 0.02  # one 0.02 m bin at most
 
 
 def test_simulate_rejects_invalid_scene_file(tmp_path, capsys):

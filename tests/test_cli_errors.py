@@ -2,6 +2,7 @@
 ``diffgns: error: <field>: <what>; <fix>`` and exit status 2 before anything is written;
 interrupted datasets keep their finished trajectories (exit 130/143); ``--help`` imports no
 JAX."""
+import json
 import os
 import signal
 import subprocess
@@ -285,3 +286,40 @@ def test_interrupted_simulate_leaves_nothing(tmp_path, sig, code):
     assert proc.returncode == code, err
     assert err.strip().splitlines()[-1] == f"diffgns: interrupted by {sig.name}"
     assert list(tmp_path.iterdir()) == []
+
+
+def _fake_cylinder_case(case, run, progress):
+    """A tiny trajectory with the arrays of a cylinder-flow case (no CFD)."""
+    n, f = 4, 3
+    rng = np.random.default_rng(int(case["reynolds"]))
+    arrays = dict(mesh_pos=rng.random((n, 2)), cells=np.array([[0, 1, 2], [1, 2, 3]]),
+                  node_type=np.zeros(n, np.int32), on_cylinder=np.zeros(n, bool),
+                  velocity=rng.random((f, n, 2)), pressure=rng.random((f, n)),
+                  time=np.arange(f) * 0.1, cd=np.ones(f), cl=np.zeros(f))
+    return arrays, dict(frame_dt=0.1, reynolds=case["reynolds"])
+
+
+def test_cylinder_dataset_is_staged_until_complete(tmp_path, monkeypatch, capsys):
+    """An interrupted cylinder dataset stays at <out>.partial (never under the final name);
+    the same command resumes it, renames it and writes the metadata beside the final name."""
+    import diffgns.mesh.datagen as datagen
+
+    calls = []
+
+    def interrupted(case, run, progress):
+        calls.append(case)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return _fake_cylinder_case(case, run, progress)
+
+    path = tmp_path / "cyl.h5"
+    cmd = ["dataset", "--kind", "cylinder", "--n", "3", "--out", str(path)]
+    monkeypatch.setattr(datagen, "simulate_case", interrupted)
+    assert main(cmd) == 130
+    assert "1 finished trajectory kept in" in capsys.readouterr().err  # what is kept is said
+    partial = tmp_path / "cyl.h5.partial"
+    assert not path.exists() and partial.exists()
+    monkeypatch.setattr(datagen, "simulate_case", _fake_cylinder_case)
+    assert main(cmd) == 0
+    assert path.exists() and not partial.exists()
+    assert json.loads((tmp_path / "cyl.metadata.json").read_text())["n_trajectories"] == 3

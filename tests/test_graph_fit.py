@@ -111,7 +111,12 @@ def test_a_signal_checkpoints_the_step_in_flight_and_the_run_resumes(tmp_path, s
     assert e.value.code == 128 + signum and e.value.step == 13  # the step in flight completed
     assert [signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)] == before  # restored
     err = capsys.readouterr().err
-    assert f"{signal.Signals(signum).name}: checkpoint of step 13 written to" in err
+    name = signal.Signals(signum).name
+    assert f"training interrupted by {name}; checkpoint of step 13 written to" in err
+    from diffgns.cli.checks import report_interrupt
+
+    assert report_interrupt(e.value) == 128 + signum  # the command line adds no second line
+    assert capsys.readouterr().err == ""
     update, p0, s0 = _problem(_cfg(30))
     _, _, step = load_checkpoint(tmp_path / "run" / CHECKPOINT, p0, s0)
     assert step == 13

@@ -214,8 +214,11 @@ def signals_as_exceptions() -> Iterator[None]:
 
 
 def report_interrupt(e: BaseException, detail: str = "") -> int:
-    """Print the one-line interruption message; the exit status (130 SIGINT, 143 SIGTERM)."""
+    """Print the one-line interruption message (unless the interrupted code already printed
+    it: ``e.reported``); the exit status (130 SIGINT, 143 SIGTERM)."""
     signum = e.signum if isinstance(e, Interrupted) else int(signal.SIGINT)
+    if getattr(e, "reported", False):
+        return 128 + signum
     name = signal.Signals(signum).name
     print(f"diffgns: interrupted by {name}" + (f"; {detail}" if detail else ""),
           file=sys.stderr)

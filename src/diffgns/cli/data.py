@@ -53,8 +53,8 @@ def _kept(out: Path) -> str:
     for path in (out, partial_path(out)):
         if path.exists():
             n = trajectory_count(path)
-            return (f"{n} finished trajectories kept in {path}; run the same command to "
-                    "resume")
+            noun = "trajectory" if n == 1 else "trajectories"
+            return f"{n} finished {noun} kept in {path}; run the same command to resume"
     return "no trajectory was finished; nothing written"
 
 
@@ -90,8 +90,6 @@ def _cylinder_refusal(msg: str):
 
 
 def _dataset_cylinder(args) -> int:
-    from diffgns.io.dataset import H5TrajectoryFile
-    from diffgns.io.files import trajectory_count
     from diffgns.mesh.datagen import CylinderRun, CylinderSampling, generate_cylinder
 
     try:
@@ -105,16 +103,8 @@ def _dataset_cylinder(args) -> int:
                           cfl=args.cfl)
     except ValueError as e:
         raise _cylinder_refusal(str(e)) from None
-    out = Path(args.out)
-    created = not out.exists()
-    # refuse a resume with another recipe, stamp a new file with this one
-    H5TrajectoryFile(out, recipe=_cylinder_recipe(args)).close()
-    try:
-        path = generate_cylinder(out, args.n, seed=args.seed, sampling=sampling, run=run)
-    except BaseException:
-        if created and out.exists() and trajectory_count(out) == 0:
-            out.unlink()  # nothing finished: leave nothing behind
-        raise
+    path = generate_cylinder(Path(args.out), args.n, seed=args.seed, sampling=sampling,
+                             run=run, recipe=_cylinder_recipe(args), staged=True)
     print(f"dataset written to {path}")
     return 0
 

@@ -171,6 +171,7 @@ class TrainingInterrupted(SystemExit, Interrupted):  # type: ignore[misc]
         SystemExit.__init__(self, 128 + int(signum))
         self.signum, self.code = int(signum), 128 + int(signum)
         self.step, self.checkpoint = step, checkpoint
+        self.reported = False  # set once the message is printed
         self.detail = (f"checkpoint of step {step} written to {checkpoint}; run the same "
                        "command again to resume")
 
@@ -312,7 +313,8 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
             save(*done)
             raise TrainingInterrupted(done[2], ckpt, int(signal.SIGINT)) from None
     except TrainingInterrupted as e:
-        bar.write(f"{signal.Signals(e.signum).name}: {e.detail}", file=sys.stderr)
+        bar.write(str(e), file=sys.stderr)
+        e.reported = True  # the command line prints no second line
         raise
     finally:
         bar.close()

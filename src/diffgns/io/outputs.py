@@ -54,6 +54,15 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
     return traj, timing
 
 
+RUNOUT_DEFINITIONS = {
+    "final_runout_m": "farthest particle from the origin at the last frame (the runout plot's "
+                      "curve)",
+    "deposit_front_m": "far edge of the farthest one-cell bin whose deposit is at least one "
+                       "cell high, at the last frame; stray particles ahead of it are ignored "
+                       "(the plot's dashed line)",
+}
+
+
 def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
                   anim_every: int = 4, origin: float = 0.0, L0: float | None = None,
                   extra: dict | None = None) -> dict:
@@ -63,7 +72,7 @@ def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
     Everything is written to a temporary folder beside ``out`` and moved into ``out`` only
     when all of it is written (:func:`diffgns.io.files.staged_dir`), so a failed or
     interrupted call leaves ``out`` as it was. Returns the summary (runout and deposit front
-    in m; ``files`` lists the paths in ``out``).
+    in m, both defined in its ``runout_definitions``; ``files`` lists the paths in ``out``).
     """
     out = Path(out)
     x = np.asarray(traj.positions)
@@ -73,8 +82,11 @@ def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
         files = {
             "animation": viz.animate(traj, tmp / "animation.gif", every=anim_every,
                                      color="speed"),
-            "runout_plot": viz.plot_runout(np.asarray(traj.times), run, tmp / "runout.png",
-                                           L0=L0),
+            "runout_plot": viz.plot_runout(
+                np.asarray(traj.times), run, tmp / "runout.png", L0=L0,
+                labels=["farthest particle"],
+                references=[((front - L0) / L0 if L0 else front,
+                             f"deposit front, last frame ({front:.3f} m)")]),
             "deposit_plot": viz.plot_deposits([(x[0], "initial"), (x[-1], "final")],
                                               tmp / "deposit.png", scene.domain),
         }
@@ -85,6 +97,7 @@ def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
             w.finalize(connectivity_radius=2.0 * scene.dx)
         files = {k: out / Path(v).relative_to(tmp) for k, v in files.items()}
         summary = dict(final_runout_m=float(run[-1]), deposit_front_m=front,
+                       runout_definitions=RUNOUT_DEFINITIONS,
                        frames=int(traj.n_frames), particles=int(traj.n_particles),
                        files={k: str(v) for k, v in files.items()}, **(extra or {}))
         if L0:

@@ -167,14 +167,20 @@ def time_case(case: dict, run: CylinderRun, n_frames: int = 50,
 
 
 def generate_cylinder(path, n: int, seed: int = 0, sampling: CylinderSampling | None = None,
-                      run: CylinderRun | None = None, progress: bool = True) -> Path:
-    """Write ``n`` cylinder-flow trajectories to ``path`` (resumes; see module docstring)."""
+                      run: CylinderRun | None = None, progress: bool = True,
+                      recipe: dict | None = None, staged: bool = False) -> Path:
+    """Write ``n`` cylinder-flow trajectories to ``path`` (resumes; see module docstring).
+
+    ``recipe`` and ``staged`` go to the writer
+    (:class:`~diffgns.io.dataset.H5TrajectoryFile`): a resume with another recipe is refused
+    before anything is written, and a staged new file is built as ``<path>.partial`` and
+    renamed when all ``n`` trajectories are written."""
     if not (isinstance(n, int) and n >= 1):
         raise ValueError(f"generate_cylinder: n must be a positive integer, got {n}")
     sampling = sampling or CylinderSampling()
     run = run or CylinderRun()
     extra = dict(seed=seed, sampling=asdict(sampling), run=asdict(run))
-    with CylinderDatasetWriter(path, metadata_extra=extra) as w:
+    with CylinderDatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=staged) as w:
         for i in tqdm(range(n), desc="cylinder flows", disable=not progress):
             key = f"{i:05d}"
             if w.has(key):

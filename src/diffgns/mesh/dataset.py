@@ -34,6 +34,7 @@ import h5py
 import numpy as np
 
 from diffgns.io.dataset import _TMP_PREFIX, H5TrajectoryFile, metadata_path
+from diffgns.io.files import write_text_atomic
 from diffgns.mesh.geometry import FLUID, INFLOW, NODE_TYPE_NAMES, OUTFLOW, WALL
 
 _ARRAYS = ("mesh_pos", "cells", "node_type", "on_cylinder", "velocity", "pressure", "time",
@@ -108,7 +109,8 @@ class CylinderDatasetWriter(H5TrajectoryFile):
                     sequence_length=[t["n_frames"] for t in per],
                     n_nodes=[t["n_nodes"] for t in per], trajectories=per,
                     **self.metadata_extra)
-        metadata_path(self.path).write_text(json.dumps(meta, indent=2, default=str) + "\n")
+        write_text_atomic(metadata_path(self.final_path),
+                          json.dumps(meta, indent=2, default=str) + "\n")
         return meta
 
 def _json_attr(v):
