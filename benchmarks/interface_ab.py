@@ -4,15 +4,17 @@ fresh processes, old/new alternating.
 
 Prepare the old tree once:
     mkdir -p /tmp/old && git archive 6920902 src models | tar -x -C /tmp/old
-then: python benchmarks/interface_ab.py [rounds]   (writes benchmarks/results/interface_ab.json)
+then: python benchmarks/interface_ab.py [rounds]   (writes
+benchmarks/results/interface_ab.json under the quiet-machine protocol of protocol.py)
 """
+import argparse
 import json
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
+import protocol
 
 OLD_SRC = "/tmp/old/src"
 WORKER = r'''
@@ -75,24 +77,29 @@ def worker(which):
         raise SystemExit(r.stderr[-3000:])
     return json.loads(r.stdout.strip().splitlines()[-1])
 
-if __name__ == "__main__":
-    rounds = int(sys.argv[1]) if len(sys.argv) > 1 else 3
-    out = dict(load_before=os.getloadavg(), command=" ".join(sys.argv), rows=[],
-               date=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
-    for r in range(rounds):
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("rounds", type=int, nargs="?", default=3, help="A/B rounds")
+    ap.add_argument("--out", default="interface_ab.json")
+    protocol.add_arguments(ap)
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "interface_ab")
+    out = dict(rows=[])
+    for r in range(args.rounds):
         for w in (("old", "new") if r % 2 == 0 else ("new", "old")):
             row = worker(w)
             row["round"] = r
             out["rows"].append(row)
-            print(row, flush=True)
-    out["load_after"] = os.getloadavg()
+            run.print(row)
     for k in ("mpm_50_frames_s", "gns_120_frames_s"):
         ratios = [next(x[k] for x in out["rows"] if x["which"] == "new" and x["round"] == r) /
                   next(x[k] for x in out["rows"] if x["which"] == "old" and x["round"] == r)
-                  for r in range(rounds)]
+                  for r in range(args.rounds)]
         out[k + "_new_over_old"] = dict(per_round=ratios, median=float(np.median(ratios)))
-        print(k, "new/old per round", [f"{x:.3f}" for x in ratios],
-              "median", f"{np.median(ratios):.3f}")
-    print("load before", out["load_before"], "after", out["load_after"])
-    with open("benchmarks/results/interface_ab.json", "w") as f:
-        json.dump(out, f, indent=1)
+        run.print(k, "new/old per round", [f"{x:.3f}" for x in ratios],
+                  "median", f"{np.median(ratios):.3f}")
+    run.finish(args.out, out)
+
+
+if __name__ == "__main__":
+    main()

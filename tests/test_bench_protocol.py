@@ -232,3 +232,16 @@ def test_finish_adds_the_pinned_run_once_and_draws_figures_only_in_the_users_run
                   environ={protocol.PINNED_ENV: "1"})
     assert child.finish("ignored.json", {}, drawn.append) == tmp_path / "c.json"
     assert drawn == [path]  # a pinned child writes its JSON for the parent, no figures
+
+
+def test_every_benchmark_script_runs_under_the_protocol():
+    """Issue 22: one protocol for every speed figure. A script in benchmarks/ that prints
+    timings must take the protocol's options and start a protocol run."""
+    bench = Path(protocol.__file__).parent
+    scripts = [p for p in bench.glob("*.py")
+               if p.name not in ("protocol.py", "conftest.py") and not p.name.startswith("test_")]
+    assert len(scripts) >= 15
+    missing = [p.name for p in scripts
+               if "protocol.add_arguments(" not in p.read_text()
+               or "protocol.start(" not in p.read_text()]
+    assert missing == [], f"benchmarks outside the protocol: {missing}"
