@@ -69,6 +69,7 @@ BENCH = --wait-quiet $(BENCH_WAIT)
 bench: $(VENV)/.installed-bench $(VENV)/.installed-test
 	$(PY) benchmarks/mpm_throughput.py $(BENCH)
 	$(PY) benchmarks/mpm_vs_taichi.py $(BENCH)
+	$(PY) benchmarks/mpm_sand_vs_taichi.py $(BENCH)
 	$(PY) benchmarks/mpm_profile.py $(BENCH)
 	$(PY) benchmarks/mpm_effects.py $(BENCH)
 	$(PY) benchmarks/mpm_grad_memory.py $(BENCH)

@@ -40,6 +40,7 @@ import sys
 
 import numpy as np
 import protocol
+from mpm_vs_taichi import taichi_config  # the same Taichi set-up record
 from protocol import fmt_rate, warm_up_jax
 
 from diffgns.timing import interleave, measure, no_sync
@@ -405,15 +406,6 @@ def measure_size(run: protocol.Run, ti, cells: int, args) -> tuple[dict, bool]:
     row.update(frames_per_repeat=seg, substeps_per_repeat=seg * n_sub, repeats=args.repeats,
                **res)
     return row, True
-
-
-def taichi_config(ti) -> dict:
-    from taichi.lang import impl
-
-    cfg = impl.current_cfg()
-    return {"arch": str(cfg.arch), "cpu_max_num_threads": cfg.cpu_max_num_threads,
-            "default_fp": str(cfg.default_fp), "offline_cache": bool(cfg.offline_cache),
-            "launch": "one @ti.kernel (4 parallel loops) per substep"}
 
 
 def main(argv=None):
