@@ -221,7 +221,9 @@ def _wait_for_first(path: Path, proc, timeout: float = 60.0) -> None:
     (signal.SIGINT, 130), pytest.param(signal.SIGTERM, 143, marks=pytest.mark.slow)])
 def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
     out = tmp_path / "d" / "cols.h5"
-    argv = ["dataset", "--kind", "column", "--aspect-ratios", "0.5", "1",
+    # four trajectories: on a loaded machine the signal may arrive a trajectory late, and
+    # there must still be work left to interrupt
+    argv = ["dataset", "--kind", "column", "--aspect-ratios", "0.5", "1", "1.5", "2",
             "--friction-angles", "30", "--frames", "10", "--cells-across", "4", "--out",
             str(out)]
     env = dict(os.environ, HDF5_USE_FILE_LOCKING="FALSE")
@@ -236,11 +238,11 @@ def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
     assert "Traceback" not in err
     assert not out.exists()  # only the resumable .partial
     kept = load_dataset(out.with_name("cols.h5.partial"))
-    assert len(kept) == 1
+    assert 1 <= len(kept) < 4
     if sig == signal.SIGTERM:  # (slow) resume: completes, keeps what was there, renames
         assert main(argv) == 0
         again = load_dataset(out)
-        assert len(again) == 2 and not out.with_name("cols.h5.partial").exists()
+        assert len(again) == 4 and not out.with_name("cols.h5.partial").exists()
         np.testing.assert_array_equal(np.asarray(again[0].positions),
                                       np.asarray(kept[0].positions))
         clean = tmp_path / "clean.h5"  # bit-identical to an uninterrupted run

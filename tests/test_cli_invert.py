@@ -33,6 +33,7 @@ surface = {kind = "friction", mu = 0.5}
 """
 
 
+@pytest.mark.slow  # ~2 min; the GNS and column inversions stay in the default suite
 def test_invert_recovers_the_friction_angle_of_a_sliding_mass_with_the_mpm(
         tmp_path, x64, capsys):
     scene = tmp_path / "slide.toml"

@@ -68,7 +68,8 @@ def _column_grad(name, value, frames=30, cells=4):
     return float(g), float(fd)
 
 
-@pytest.mark.parametrize("name,value", [("friction_angle", 35.0), ("E", 2e6)])
+@pytest.mark.parametrize("name,value", [
+    ("friction_angle", 35.0), pytest.param("E", 2e6, marks=pytest.mark.slow)])
 def test_column_runout_gradient_matches_finite_differences(name, value, x64):
     g, fd = _column_grad(name, value)
     assert abs(fd) > 0
@@ -94,7 +95,7 @@ def test_sliding_distance_gradient_wrt_wall_mu(x64):
     assert g < 0 and g == pytest.approx(fd, rel=0.01)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("dtype", ["float32", pytest.param("float64", marks=pytest.mark.slow)])
 def test_gradient_finite_through_1000_substeps_of_sand(dtype, x64):
     """From F = I (repeated singular values), particles at rest, empty nodes, walls."""
     scene = column_collapse(width=0.1, aspect_ratio=1.0, cells_across=4,
