@@ -325,3 +325,27 @@ def test_cylinder_dataset_is_staged_until_complete(tmp_path, monkeypatch, capsys
     assert main(cmd) == 0
     assert path.exists() and not partial.exists()
     assert json.loads((tmp_path / "cyl.metadata.json").read_text())["n_trajectories"] == 3
+
+
+@pytest.mark.parametrize("argv,field", [
+    (["train", "--lr", "-1"], "--lr"), (["train", "--lr-final", "0"], "--lr-final"),
+    (["train", "--radius", "-0.01"], "--radius"), (["train", "--noise-std", "-1"], "--noise-std"),
+    (["invert", "--fit", "friction_angle", "--step-tol", "0"], "--step-tol")])
+def test_signed_options_refused(tmp_path, capsys, argv, field):
+    """A negative learning rate reached optax and ended in a TypeError traceback."""
+    base = ["--data", str(tmp_path / "d.h5")] if argv[0] == "train" else []
+    _refused([*argv, *base, "--out", str(tmp_path / "o")], capsys, field)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("line,where", [
+    ("domain = [1.0, 0.5]", "[scene].domain"), ("domain = [[0, 1], [0]]", "[scene].domain"),
+    ("gravity = [0.0, 'down']", "[scene].gravity")])
+def test_malformed_scene_fields_refused(tmp_path, capsys, line, where):
+    """Wrong-shaped [scene] fields ended in a TypeError traceback."""
+    f = tmp_path / "s.toml"
+    f.write_text(f"[scene]\ndx = 0.01\n{line}\n[[bodies]]\nshape = {{type='rectangle', x0=0.0, "
+                 "y0=0.0, x1=0.1, y1=0.1}\nmaterial = {type='sand', friction_angle=30}\n")
+    err = _refused(["simulate", "--scene", str(f), "--out", str(tmp_path / "o")], capsys,
+                   f"--scene {f}")
+    assert where in err and not (tmp_path / "o").exists()

@@ -100,6 +100,22 @@ _SIMULATE_OPTIONS = {
 }
 
 
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0 (learning rates, radii, tolerances)."""
+    value = finite(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text} is not > 0; give a positive number")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """argparse type: a finite number >= 0 (noise levels, loss weights)."""
+    value = finite(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is negative; give 0 or more")
+    return value
+
 def _scene_refusal(e: Exception, default: str, fix: str,
                    options: dict | None = None) -> InputError:
     """An InputError naming the options (``options``: message word -> (option, fix)) a

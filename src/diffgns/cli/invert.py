@@ -21,7 +21,7 @@ from __future__ import annotations
 import sys
 import time
 
-from diffgns.cli.checks import count, finite
+from diffgns.cli.checks import count, finite, positive
 
 #: as in :mod:`diffgns.inverse.job` (repeated so that building the parser imports no JAX)
 SIMULATORS = ("mpm", "gns", "hybrid")
@@ -184,12 +184,12 @@ def register(sub) -> None:
                    help="MPM only: MPM frames per observed frame (default 1)")
     p.add_argument("--optimizer", default="gauss-newton", choices=["gauss-newton", "adam", "sgd"],
                    help="optimiser (default gauss-newton)")
-    p.add_argument("--lr", type=finite, default=None,
+    p.add_argument("--lr", type=positive, default=None,
                    help="gauss-newton: step scale (1); adam/sgd: learning rate on the "
                    "transformed parameters (0.1)")
     p.add_argument("--max-iter", type=count, default=20,
                    help="optimiser iterations at most, count (default 20)")
-    p.add_argument("--step-tol", type=finite, default=0.01,
+    p.add_argument("--step-tol", type=positive, default=0.01,
                    help="stop when every step is below this (parameter units)")
     p.add_argument("--gradient", default="ad", choices=["ad", "fd"],
                    help="ad: automatic differentiation; fd: finite differences (default ad)")

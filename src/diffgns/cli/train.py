@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from diffgns.cli.checks import count, finite
+from diffgns.cli.checks import count, non_negative, positive
 from diffgns.io.files import check_input_file
 
 
@@ -86,14 +86,14 @@ def register(sub) -> None:
                    help="optimiser steps, count (default 20000)")
     t.add_argument("--batch-size", type=count, default=2,
                    help="training samples per step, count (default 2)")
-    t.add_argument("--lr", type=finite, default=1e-3,
+    t.add_argument("--lr", type=positive, default=1e-3,
                    help="initial learning rate (Adam), dimensionless (default 1e-3)")
-    t.add_argument("--lr-final", type=finite, default=1e-5,
+    t.add_argument("--lr-final", type=positive, default=1e-5,
                    help="learning-rate floor of the exponential decay (default 1e-5)")
     t.add_argument("--lr-decay-steps", type=count, default=None,
                    help="steps over which the learning rate decays to --lr-final, count "
                    "(default --steps)")
-    t.add_argument("--radius", type=finite, default=0.015,
+    t.add_argument("--radius", type=positive, default=0.015,
                    help="particles: connectivity radius, m (default 0.015)")
     t.add_argument("--latent", type=count, default=128,
                    help="width of the latent vectors and MLPs, count (default 128)")
@@ -101,7 +101,7 @@ def register(sub) -> None:
                    help="message-passing steps, count (default 10)")
     t.add_argument("--mlp-layers", type=count, default=2,
                    help="hidden layers per MLP, count (default 2)")
-    t.add_argument("--noise-std", type=finite, default=None,
+    t.add_argument("--noise-std", type=non_negative, default=None,
                    help="training noise: random walk in m (particles, default 6.7e-4) or "
                    "velocity noise in m/s (mesh, default 0.02)")
     t.add_argument("--attention", action="store_true",
@@ -113,7 +113,7 @@ def register(sub) -> None:
     t.add_argument("--push-forward", type=int, default=0,
                    help="extra unrolled steps of push-forward training, count >= 0 "
                    "(default 0)")
-    t.add_argument("--momentum-weight", type=finite, default=0.0,
+    t.add_argument("--momentum-weight", type=non_negative, default=0.0,
                    help="particles: weight of the momentum-conservation loss, "
                    "dimensionless (default 0)")
     t.add_argument("--seed", type=int, default=0, help="random seed, integer (default 0)")

@@ -65,8 +65,25 @@ def _shape(d: dict, where: str):
         return Rectangle(**d)
     if kind == "polygon":
         _check_keys(d, {"vertices"}, where)
-        return Polygon(tuple(tuple(v) for v in d.get("vertices", ())))
+        return Polygon(_numbers(d.get("vertices", ()), 0, 2, f"{where}.vertices",
+                                "a list of [x, y] vertices in m"))
     raise SceneError(f"{where}.type = {kind!r} is unknown; use 'rectangle' or 'polygon'")
+
+
+def _numbers(value, rows: int | None, cols: int, where: str, hint: str) -> tuple:
+    """``value`` as a tuple of ``cols`` numbers (``rows`` is None) or of ``rows`` such tuples
+    (``rows`` 0: any count); anything else is a SceneError naming ``where`` and ``hint``."""
+    def row(v):
+        if not (isinstance(v, list | tuple) and len(v) == cols
+                and all(isinstance(x, int | float) and not isinstance(x, bool) for x in v)):
+            raise SceneError(f"{where} = {value!r} is malformed; give {hint}")
+        return tuple(v)
+
+    if rows is None:
+        return row(value)
+    if not (isinstance(value, list | tuple) and (rows == 0 or len(value) == rows)):
+        raise SceneError(f"{where} = {value!r} is malformed; give {hint}")
+    return tuple(row(v) for v in value)
 
 
 def scene_from_dict(d: dict) -> Scene:
@@ -75,9 +92,10 @@ def scene_from_dict(d: dict) -> Scene:
     sc = dict(d.get("scene", {}))
     _check_keys(sc, SCENE_KEYS, "[scene]")
     if "domain" in sc:
-        sc["domain"] = tuple(tuple(ax) for ax in sc["domain"])
+        sc["domain"] = _numbers(sc["domain"], 2, 2, "[scene].domain",
+                                "[[x0, x1], [y0, y1]] in m")
     if "gravity" in sc:
-        sc["gravity"] = tuple(sc["gravity"])
+        sc["gravity"] = _numbers(sc["gravity"], None, 2, "[scene].gravity", "[gx, gy] in m/s^2")
     walls = d.get("walls", {})
     _check_keys(walls, set(WALL_NAMES), "[walls]")
     wall_objs = Walls(**{k: _wall(v, f"[walls].{k}") for k, v in walls.items()})
