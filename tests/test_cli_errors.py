@@ -204,6 +204,13 @@ def test_public_names_still_import():
         diffgns.nope  # noqa: B018
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default. pytest-xdist workers (and
+    background jobs of a non-interactive shell) ignore SIGINT, a child inherits that, and
+    Python then installs no KeyboardInterrupt handler: Ctrl-C would never reach diffgns."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait_for_first(path: Path, proc, timeout: float = 60.0) -> None:
     t0 = time.monotonic()
     while proc.poll() is None and time.monotonic() - t0 < timeout:
@@ -228,6 +235,7 @@ def test_interrupted_dataset_keeps_finished_trajectories(tmp_path, sig, code):
             str(out)]
     env = dict(os.environ, HDF5_USE_FILE_LOCKING="FALSE")
     proc = subprocess.Popen([sys.executable, "-m", "diffgns.cli", *argv], env=env,
+                            preexec_fn=_default_sigint,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _wait_for_first(out.with_name("cols.h5.partial"), proc)
     proc.send_signal(sig)
@@ -279,8 +287,8 @@ def test_interrupted_simulate_leaves_nothing(tmp_path, sig, code):
     """Interrupted mid-run (the process used to crash with SIGSEGV while tearing down the
     interrupted XLA computation): one line, 130/143, no output folder, no staging folder."""
     proc = subprocess.Popen([sys.executable, "-m", "diffgns.cli", "simulate", "--column",
-                             "--frames", "2000", "--cells-across", "4", "--out",
-                             str(tmp_path / "sim" / "out")],
+                            "--frames", "2000", "--cells-across", "4", "--out",
+                            str(tmp_path / "sim" / "out")], preexec_fn=_default_sigint,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     time.sleep(8)
     proc.send_signal(sig)
