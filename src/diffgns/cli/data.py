@@ -16,9 +16,9 @@ from diffgns.cli.checks import (
 
 
 def _simulate(args) -> int:
+    scene, L0 = check_simulate(args)  # before JAX is imported: a refusal comes at once
     from diffgns.io.outputs import run_mpm, write_outputs
 
-    scene, L0 = check_simulate(args)
     print(f"scene: {scene.n_particles} particles, grid {scene.grid_shape}, "
           f"{scene.substeps} substeps/frame (dt = {scene.substep_dt:.2e} s), "
           f"effects: {', '.join(sorted(scene.effects))}")
