@@ -65,7 +65,7 @@ def evaluate_case(model, params, traj, info, run_cfg, args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="src/diffgns/models/meshnet_cylinder/model")
+    ap.add_argument("--model", default="meshnet_cylinder")
     ap.add_argument("--data", default="data/cylinder_test.h5")
     ap.add_argument("--out", default="meshnet_accuracy_speed.json")
     ap.add_argument("--repeats", type=int, default=3)
