@@ -648,11 +648,8 @@ def main(argv=None) -> None:
                     "1_thread_pinned": one.get("configs", {}).get(k, {}).get("ratios", {})
                     .get(part, {}).get("median_paired_ratio")} for k, r in results.items()}
             for k, r in payload[f"ratios_{part}"].items():
-                r1 = r["1_thread_pinned"]
-                run.print(f"{k}: {part} time diffgns / torch: 2 threads {r['2_threads']:.2f}; "
-                          "1 thread pinned " + ("refused (load)" if r1 is None else f"{r1:.2f}")
-                          + ("" if one.get("valid", False) else " INVALID (pinned run loaded)"),
-                          tag=False)
+                run.print(f"{k}: {part} time diffgns / torch: " + protocol.both_ratios(
+                    r["2_threads"], r["1_thread_pinned"], one, digits=2), tag=False)
     path = run.finish(args.out, payload)
     run.print(f"wrote {path}")
 

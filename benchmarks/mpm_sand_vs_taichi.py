@@ -469,11 +469,8 @@ def main(argv=None):
               for r in one.get("sizes", [])}
         payload["ratios"] = {"2_threads": ratios, "1_thread_pinned": r1 or None}
         for n, r2 in ratios.items():
-            run.print(f"diffgns / taichi throughput, {n} particles: 2 threads {r2:.3f}; "
-                      "1 thread pinned " + ("refused (load)" if n not in r1
-                                            else f"{r1[n]:.3f}")
-                      + ("" if one.get("valid", False) else " INVALID (pinned run loaded)"),
-                      tag=False)
+            run.print(f"diffgns / taichi throughput, {n} particles: "
+                      + protocol.both_ratios(r2, r1.get(n), one), tag=False)
     path = run.finish(args.out, payload)
     run.print(f"wrote {path}")
 

@@ -432,9 +432,7 @@ def main(argv=None):
         one = payload["one_thread_pinned"] = run.pinned_child()
         r2, r1 = res["ratio_diffgns_over_taichi"], one.get("ratio_diffgns_over_taichi")
         payload["ratios"] = {"2_threads": r2, "1_thread_pinned": r1}
-        run.print(f"diffgns / taichi throughput: 2 threads {r2:.3f}; 1 thread pinned "
-                  + ("refused (load)" if r1 is None else f"{r1:.3f}")
-                  + ("" if one.get("valid", False) else " INVALID (pinned run loaded)"),
+        run.print("diffgns / taichi throughput: " + protocol.both_ratios(r2, r1, one),
                   tag=False)
     path = run.finish(args.out, payload)
     run.print(f"wrote {path}")

@@ -346,6 +346,16 @@ def start(args: argparse.Namespace, name: str, timed: bool = True,
                steal_at_start=steal)
 
 
+def both_ratios(r2: float, r1: float | None, pinned: Mapping[str, Any], digits: int = 3
+                ) -> str:
+    """The one line of a two-mode report: ``2 threads <r2>; 1 thread pinned <r1>`` with
+    ``refused (load)`` when the pinned child measured nothing and ``INVALID (pinned run
+    loaded)`` when its JSON (``pinned``) is not valid."""
+    one = "refused (load)" if r1 is None else f"{r1:.{digits}f}"
+    bad = "" if pinned.get("valid", False) else " INVALID (pinned run loaded)"
+    return f"2 threads {r2:.{digits}f}; 1 thread pinned {one}{bad}"
+
+
 def wait_for_quiet(max_load: float, timeout_s: float, read: LoadReader | None = None,
                    sleep: Callable[[float], None] = time.sleep, poll_s: float = 5.0
                    ) -> tuple[float, float, float]:

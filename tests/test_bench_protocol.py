@@ -122,10 +122,22 @@ def test_cpu_stolen_by_the_host_marks_a_quiet_run_invalid(monkeypatch, capsys):
     assert protocol.steal_fraction(None, (1, 2)) is None
 
 
-def test_steal_is_read_from_proc_stat():
-    now = protocol.read_cpu_times()
-    if Path("/proc/stat").exists():
-        assert now is not None and 0 <= now[0] <= now[1]
+def test_steal_is_read_from_proc_stat(monkeypatch):
+    monkeypatch.undo()  # the real /proc/stat, not the autouse fake
+    if not Path("/proc/stat").exists():
+        pytest.skip("no /proc/stat")
+    before = protocol.read_cpu_times()
+    sum(i * i for i in range(2_000_000))  # some CPU time passes
+    after = protocol.read_cpu_times()
+    assert 0 <= before[0] <= after[0] <= after[1] and after[1] > before[1]
+    assert 0.0 <= protocol.steal_fraction(before, after) <= 1.0
+
+
+def test_both_ratios_line_names_refused_and_invalid_pinned_runs():
+    assert protocol.both_ratios(0.8312, 1.009, {"valid": True}) == (
+        "2 threads 0.831; 1 thread pinned 1.009")
+    assert protocol.both_ratios(0.7, None, {}, digits=2) == (
+        "2 threads 0.70; 1 thread pinned refused (load) INVALID (pinned run loaded)")
 
 
 def test_combined_report_is_invalid_if_its_pinned_part_is():

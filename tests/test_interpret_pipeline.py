@@ -178,3 +178,11 @@ def test_symbolic_command_refuses_a_bad_budget(tmp_path, capsys):
     assert main(["symbolic", "--out", str(tmp_path), "--sr-generations", "0"]) == 2
     assert "--sr-generations must be at least 1" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_light_cli_options_name_the_pipelines_laws_and_variants():
+    """diffgns.interpret.options (no JAX, for a fast --help) repeats the pipeline's names."""
+    from diffgns.interpret import options
+
+    assert set(options.LAWS) == set(pipeline.SYSTEMS)
+    assert set(options.VARIANT_NAMES) == set(pipeline.VARIANTS)

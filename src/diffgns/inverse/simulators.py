@@ -34,6 +34,7 @@ from diffgns.graph.gns import GNSParams
 from diffgns.interface import rollout, rollout_safe
 from diffgns.inverse.observation import Column, ColumnCase, SceneObservation
 from diffgns.inverse.parameters import STATE_PARAMS
+from diffgns.models import model_dir
 from diffgns.scene.materials import friction_feature
 
 __all__ = ["Column", "ColumnCase", "DEFAULT_MODEL", "GNSSimulator", "HybridSimulator",
@@ -206,24 +207,16 @@ class HybridSimulator:
         self.state = self.state._replace(nbrs=start.nbrs)
 
 
-def _model_folder(model: str | Path) -> Path:
-    """The folder holding a particle GNS's ``config.json`` and weights (ModelFolderError,
-    a FileNotFoundError, naming what is missing otherwise)."""
-    from diffgns.models import model_dir
-
-    return model_dir(model, "config.json")
-
-
 def model_info(model: str | Path = DEFAULT_MODEL) -> dict:
     """The ``config.json`` of a GNS model folder or shipped model name (no weights loaded)."""
-    return json.loads((_model_folder(model) / "config.json").read_text())
+    return json.loads((model_dir(model, "config.json") / "config.json").read_text())
 
 
 def load_gns(model: str | Path = DEFAULT_MODEL):
     """(GNS, params, info) of a model folder or shipped model name, with a clear error."""
     from diffgns.graph.train_loop import load_model
 
-    return load_model(_model_folder(model))
+    return load_model(model_dir(model, "config.json"))
 
 
 def check_model(obs: SceneObservation, loaded, model="the model") -> None:
