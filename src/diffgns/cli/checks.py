@@ -151,6 +151,14 @@ def check_dataset(args) -> None:
                 pass
         except (SceneError, ValueError, ArithmeticError) as e:
             raise _scene_refusal(e, "--aspect-ratios", "check the column options") from None
+    elif args.kind == "granular":
+        from diffgns.scene.recipes import family_scenes
+
+        try:
+            for _ in family_scenes(args.families, args.n, args.seed):
+                pass
+        except SceneError as e:
+            raise _scene_refusal(e, "--families", "check --families and --seed") from None
     elif args.kind == "squares":
         from diffgns.scene.recipes import square_scenes
 

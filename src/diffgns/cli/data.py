@@ -26,6 +26,10 @@ def _simulate(args) -> int:
     summary = write_outputs(traj, scene, args.out, vtk_every=args.vtk_every, L0=L0,
                             extra=dict(timing=timing))
     print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
+    from diffgns.clamp import clamp_warning
+
+    if warn := clamp_warning(summary, "the MPM"):
+        print(warn)
     print(f"outputs written to {args.out}")
     return 0
 
@@ -61,6 +65,12 @@ def _kept(out: Path) -> str:
 def _generate(args) -> int:
     if args.kind == "cylinder":
         return _dataset_cylinder(args)
+    if args.kind == "granular":  # issue 21: random scenes of every family
+        from diffgns.io.families_data import generate_families
+
+        path = generate_families(args.out, args.families, args.n, args.frames, seed=args.seed)
+        print(f"dataset written to {path}")
+        return 0
     from diffgns.io.datagen import generate_columns, generate_squares
 
     if args.kind == "column":
@@ -147,9 +157,13 @@ def register(sub) -> None:
 
     d = sub.add_parser("dataset", help="generate an HDF5 training set with the MPM or, for "
                        "--kind cylinder, the cylinder-flow CFD (resumable)")
-    d.add_argument("--kind", choices=["column", "squares", "cylinder"], required=True,
-                   help="column collapses over (aspect ratio x friction angle), random "
-                   "granular squares, or cylinder flows")
+    d.add_argument("--kind", choices=["column", "squares", "granular", "cylinder"],
+                   required=True, help="column collapses over (aspect ratio x friction angle), "
+                   "random granular squares, random scenes of the granular --families, or "
+                   "cylinder flows")
+    d.add_argument("--families", nargs="+", default=["squares", "columns", "obstacles",
+                   "collision"], help="granular: scene families, round-robin (repeat one to "
+                   "weight it) (default squares columns obstacles collision)")
     d.add_argument("--out", required=True,
                    help="output .h5 file; built as <out>.partial and renamed when complete; "
                    "an existing file or .partial made by the same recipe is resumed")
