@@ -100,7 +100,10 @@ class WindowSampler:
     def sample(self, rng: np.random.Generator, batch: int) -> dict:
         """A batch: positions (B, L, N, 2), particle_type (B, N), material (B, N)."""
         n = self._keys[rng.choice(len(self._keys), p=self._p)]
-        members = self.groups[n]
+        return self.windows(rng, self.groups[n], batch)
+
+    def windows(self, rng: np.random.Generator, members: list[int], batch: int) -> dict:
+        """``batch`` random windows of the trajectories ``members`` (one node count)."""
         pos, ptype, mat = [], [], []
         for _ in range(batch):
             t = self.trajs[members[rng.integers(len(members))]]
