@@ -1,0 +1,59 @@
+"""The general granular dataset (issue 21): ``diffgns dataset --kind granular`` writes MPM
+trajectories of random family scenes with their obstacles, family and description, resumes
+and extends by key, refuses another recipe, and refuses bad families before any JAX work."""
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from diffgns.cli import main
+from diffgns.errors import InputError
+from diffgns.io.dataset import load_dataset, read_metadata
+from diffgns.io.families_data import generate_families, read_families, read_obstacles
+from diffgns.scene.families import random_sample
+from diffgns.scene.recipes import family_plan
+
+FAMS = ["obstacles", "columns"]
+
+
+@pytest.mark.slow  # three MPM compilations (~70 s beside other jobs)
+def test_granular_dataset_writes_resumes_and_extends(tmp_path):
+    out = tmp_path / "g.h5"
+    generate_families(out, FAMS, 2, 3, seed=4, progress=False)
+    assert out.exists() and not out.with_name("g.h5.partial").exists()
+    with h5py.File(out, "r") as f:
+        stamp = float(f["00000"].attrs["mpm_seconds"])
+    plan = family_plan(FAMS, 2, 4)
+    assert read_families(out) == {"00000": "obstacles", "00001": "columns"}
+    for key, (family, s) in zip(("00000", "00001"), plan):
+        scene, desc = random_sample(family, s)
+        np.testing.assert_array_equal(read_obstacles(out, key),
+                                      np.asarray(desc["obstacles"]).reshape(-1, 4))
+        with h5py.File(out, "r") as f:
+            assert json.loads(f[key].attrs["description"]) == desc
+            assert f[key]["position"].shape == (4, scene.n_particles, 2)
+            np.testing.assert_allclose(f[key]["position"][0], scene.particles()["x"], atol=1e-6)
+    assert len(read_obstacles(out, "00000")) >= 1 and read_obstacles(out, "00001").shape == (0, 4)
+    meta = read_metadata(out)
+    assert meta["kind"] == "granular" and meta["family_counts"] == {"obstacles": 1, "columns": 1}
+    # a larger n extends the file: the first two trajectories are kept, not recomputed
+    generate_families(out, FAMS, 3, 3, seed=4, progress=False)
+    with h5py.File(out, "r") as f:
+        assert float(f["00000"].attrs["mpm_seconds"]) == stamp and len(f) == 3
+    trajs = load_dataset(out)
+    assert all(np.isfinite(np.asarray(t.positions)).all() for t in trajs)
+    with pytest.raises(InputError, match="families"):  # another recipe is refused
+        generate_families(out, ["squares"], 3, 3, seed=4, progress=False)
+
+
+@pytest.mark.parametrize("families", [["boulders"], ["columns", "sand"]])
+def test_cli_refuses_unknown_family(tmp_path, capsys, families):
+    out = tmp_path / "x.h5"
+    assert main(["dataset", "--kind", "granular", "--families", *families, "--out",
+                 str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diffgns: error: --families") and len(err.splitlines()) == 1
+    assert not out.exists()
