@@ -89,3 +89,24 @@ bench-gns: $(VENV)/.installed-test
 	$(PY) benchmarks/hybrid_pareto.py $(BENCH)
 	$(PY) benchmarks/inverse_gns_memory.py $(BENCH)
 	$(PY) benchmarks/inverse_gns_bias.py
+
+# issue 21: the general granular dataset (random scenes of every family, the MPM of
+# gns_cg16_pfn; docs/guides/gns.md "General granular data"). One file per process, so
+# `make -j2 granular-data` uses both cores; each file is resumable (rerun after a stop: the
+# .partial file is resumed). The test set (seed 2) is drawn after the model is frozen.
+GRANULAR_FRAMES ?= 250
+GRANULAR_N ?= 200
+GRANULAR_VALID_N ?= 24
+GRANULAR = $(VENV)/bin/diffgns dataset --kind granular --frames $(GRANULAR_FRAMES)
+
+.PHONY: granular-data granular-test-data
+granular-data: data/granular_train.h5 data/granular_valid.h5
+
+data/granular_train.h5: $(VENV)/.installed-test
+	nice -n 19 $(GRANULAR) --n $(GRANULAR_N) --seed 0 --out $@
+
+data/granular_valid.h5: $(VENV)/.installed-test
+	nice -n 19 $(GRANULAR) --n $(GRANULAR_VALID_N) --seed 1 --out $@
+
+granular-test-data: $(VENV)/.installed-test
+	nice -n 19 $(GRANULAR) --n $(GRANULAR_VALID_N) --seed 2 --out data/granular_test.h5
