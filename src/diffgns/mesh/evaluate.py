@@ -7,6 +7,10 @@ For one trajectory of F frames (:func:`evaluate_trajectory`):
 * the Strouhal number ``St = f D / Ubar`` of the lift from the pressure on the cylinder
   (:func:`pressure_force_coefficients`, the same integral for CFD and model fields), over
   the whole compared horizon, and its relative error;
+* the lift amplitude: peak-to-peak pressure lift over the second half of the compared
+  horizon, model against CFD, and its relative error;
+* ``meets_targets`` (issue 23): St within 5%, lift amplitude within 20% and the long rollout
+  stable as below;
 * stability: a rollout ``long_factor`` times the horizon; its velocities stay finite and below
   twice the CFD's largest speed, and it stays periodic (St over its last third within 5% of
   St over its first third, peak-to-peak lift in the last third within a factor 2 of the
@@ -96,19 +100,79 @@ def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor
     long_speed = float(np.nanmax(np.linalg.norm(long_v, axis=-1)))
     cfd_pp = float(np.ptp(pressure_force_coefficients(traj, traj["pressure"])[1]))
     last_pp = float(np.ptp(pressure_force_coefficients(traj, long_p[-third:])[1]))
+    # lift amplitude over the compared horizon, from the second half (past any transient)
+    half = (F - 1) // 2
+    amp_cfd = float(np.ptp(pressure_force_coefficients(traj, traj["pressure"][1 + half:])[1]))
+    amp_model = float(np.ptp(pressure_force_coefficients(traj, ps[half:])[1]))
     sim_seconds = (F - 1) * dt
+    stable = bool(np.all(np.isfinite(long_v)) and long_speed < 2 * cfd_speed
+                  and abs(last["strouhal"] / first["strouhal"] - 1) < 0.05
+                  and 0.5 < last_pp / cfd_pp < 2.0)
     return dict(
         key=traj["key"], reynolds=float(traj["attrs"]["reynolds"]), frames=F,
         rmse=horizons, strouhal_cfd=cfd["strouhal"], strouhal_model=gnn["strouhal"],
         strouhal_rel_error=abs(gnn["strouhal"] - cfd["strouhal"]) / cfd["strouhal"],
+        lift_pp_cfd=amp_cfd, lift_pp_model=amp_model,
+        lift_pp_rel_error=abs(amp_model - amp_cfd) / amp_cfd,
         long_frames=long_factor * (F - 1), long_finite=bool(np.all(np.isfinite(long_v))),
         long_max_speed=long_speed, cfd_max_speed=cfd_speed,
         long_strouhal_first_third=first["strouhal"], long_strouhal_last_third=last["strouhal"],
         long_lift_pp_last_third=last_pp, cfd_lift_pp=cfd_pp,
-        stable=bool(np.all(np.isfinite(long_v)) and long_speed < 2 * cfd_speed
-                    and abs(last["strouhal"] / first["strouhal"] - 1) < 0.05
-                    and 0.5 < last_pp / cfd_pp < 2.0),
+        stable=stable,
+        meets_targets=bool(abs(gnn["strouhal"] - cfd["strouhal"]) <= 0.05 * cfd["strouhal"]
+                           and abs(amp_model - amp_cfd) <= 0.2 * amp_cfd and stable),
         compile_s=timing["compile_s"], model_s_per_sim_s=timing["median_s"] / sim_seconds,
         model_cpu_s_per_sim_s=timing["cpu_median_s"] / sim_seconds, model_timing=timing,
         cfd_s_per_sim_s=float(traj["attrs"].get("cfd_wall_per_sim_second", np.nan)),
         velocity=vs, pressure=ps, long_pressure=long_p)
+
+
+def targets_table(results: list[dict]) -> str:
+    """Markdown table of :func:`evaluate_trajectory` results against issue 23's targets
+    (St within 5%, lift amplitude within 20%, 3x rollout bounded and periodic; cost is the
+    model's rollout seconds per simulated second against the CFD's recorded with the data)."""
+    rows = ["| Re | St CFD | St model | St err | lift p-p CFD | lift p-p model | lift err "
+            "| 3x bounded+periodic | meets | model s/sim-s | CFD s/sim-s |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        rows.append(
+            f"| {r['reynolds']:g} | {r['strouhal_cfd']:.4f} | {r['strouhal_model']:.4f} "
+            f"| {r['strouhal_rel_error']:.1%} | {r['lift_pp_cfd']:.3f} | "
+            f"{r['lift_pp_model']:.3f} | {r['lift_pp_rel_error']:.1%} | "
+            f"{'yes' if r['stable'] else 'no'} | {'yes' if r['meets_targets'] else 'no'} | "
+            f"{r['model_s_per_sim_s']:.3g} | {r['cfd_s_per_sim_s']:.3g} |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    """``python -m diffgns.mesh.evaluate --model M --data D``: every trajectory of ``D``."""
+    import argparse
+    import json
+
+    from diffgns.mesh.train import load_cylinder, load_model
+
+    p = argparse.ArgumentParser(prog="python -m diffgns.mesh.evaluate",
+                                description="MeshGraphNet vs CFD on every trajectory of a "
+                                "cylinder dataset (issue 23's targets)")
+    p.add_argument("--model", required=True, help="model folder (or run folder)")
+    p.add_argument("--data", required=True, help="held-out cylinder dataset (.h5)")
+    p.add_argument("--repeats", type=int, default=1, help="timed rollouts per case")
+    p.add_argument("--json", default=None, help="write the metrics here")
+    a = p.parse_args(argv)
+    model, params, info = load_model(a.model)
+    res = []
+    for traj in load_cylinder(a.data):
+        r = evaluate_trajectory(model, params, traj, info["padding"], repeats=a.repeats)
+        for k in ("velocity", "pressure", "long_pressure"):
+            r.pop(k)
+        res.append(r)
+    print(targets_table(res))
+    print("timings indicative only: taken on a shared, loaded machine")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(res, f, indent=2, default=float)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,254 @@
+"""MeshGraphNet training in stages: input noise per stage and unrolled training through rollouts.
+
+Issue 23's training levers, on the shared optimiser loop :func:`diffgns.graph.fit.fit`
+(checkpoints, exact resume, SIGTERM):
+
+* **stages** (:class:`Stage`): the noise std (m/s, on fluid-node input velocities) and the
+  unroll length ``K`` are functions of the optimiser step, so one run anneals the noise (e.g.
+  halving it stage by stage) and a resumed run is bit-identical to an uninterrupted one (the
+  stage, batch and noise are functions of the step);
+* **unrolled loss** (:func:`unrolled_loss`): from a data frame ``v_t`` (plus noise) the model
+  rolls ``K`` frames on its own predictions and the loss is the mean over the ``K`` steps of
+  the normalised one-step error against the data,
+  ``|(v^model_{k+1} - v^data_{t+k+1}) / s_dv|^2`` on fluid/outflow nodes plus the pressure
+  term; gradients flow back through the whole rollout (reverse mode through ``lax.scan``
+  with every frame under ``jax.checkpoint``, :func:`diffgns.interface.scan_frames`, so
+  memory is one frame's activations plus ``K`` carries). ``K = 1`` is exactly the one-step
+  loss of :func:`diffgns.mesh.train._loss` (target against the noisy input);
+* on SIGTERM or SIGINT the checkpoint is written (by :func:`~diffgns.graph.fit.fit`), then
+  ``out/model`` from it, and the process exits with 143 / 130; the same command resumes;
+* the normalisers hold the data statistics without the noise (unlike
+  :func:`diffgns.mesh.train.train`), so changing the noise between stages does not change
+  what the network sees.
+
+``python -m diffgns.mesh.stages --data D --out RUN --stages 4000:0.005:1,8000:0.002:4``
+trains (or resumes) a run; ``make meshnet-train`` runs the configuration of the shipped
+checkpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from diffgns.errors import InputError
+from diffgns.graph.fit import (
+    TrainConfig,
+    TrainingInterrupted,
+    fit,
+    load_checkpoint,
+    make_optimizer,
+    step_rng,
+)
+from diffgns.interface import scan_frames
+from diffgns.io.dataset import read_metadata
+from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig
+from diffgns.mesh.train import (
+    graphs_of,
+    load_cylinder,
+    padded_fields,
+    padding_for,
+    save_model,
+    stats_from_metadata,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """Training steps ``[previous until, until)``: input noise ``noise_std`` (m/s, >= 0) and
+    ``unroll`` frames per sample (>= 1; 1 = one-step loss)."""
+
+    until: int
+    noise_std: float
+    unroll: int = 1
+
+    def __post_init__(self):
+        if not (isinstance(self.until, int) and self.until >= 1):
+            raise InputError("--stages", f"stage end {self.until!r} is not a step count >= 1")
+        if not (np.isfinite(self.noise_std) and self.noise_std >= 0):
+            raise InputError("--stages", f"noise {self.noise_std!r} must be >= 0 m/s")
+        if not (isinstance(self.unroll, int) and self.unroll >= 1):
+            raise InputError("--stages", f"unroll {self.unroll!r} must be a count >= 1")
+
+
+def parse_stages(text: str) -> tuple[Stage, ...]:
+    """``"UNTIL:NOISE:K,UNTIL:NOISE:K,..."`` (K optional, default 1), ends increasing."""
+    out = []
+    for part in text.split(","):
+        f = part.strip().split(":")
+        if len(f) not in (2, 3):
+            raise InputError("--stages", f"{part!r} is not UNTIL:NOISE[:K]",
+                             "e.g. 4000:0.005:1,8000:0.0025:4")
+        try:
+            out.append(Stage(int(f[0]), float(f[1]), int(f[2]) if len(f) == 3 else 1))
+        except ValueError:
+            raise InputError("--stages", f"{part!r}: UNTIL and K must be integers, NOISE a "
+                             "number") from None
+    ends = [s.until for s in out]
+    if ends != sorted(set(ends)):
+        raise InputError("--stages", f"stage ends {ends} must increase")
+    return tuple(out)
+
+
+def stage_at(stages: Sequence[Stage], step: int) -> Stage:
+    """The stage of optimiser step ``step`` (0-based; the last stage beyond its end)."""
+    for s in stages:
+        if step < s.until:
+            return s
+    return stages[-1]
+
+
+def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
+                  key: jax.Array, noise_std, checkpoint: bool = True) -> jax.Array:
+    """Mean normalised error of a ``K``-frame model rollout against the data.
+
+    Args:
+        v_win: (K + 1, N, 2) data velocities of frames t..t+K, m/s.
+        p_win: (K, N) data pressures of frames t+1..t+K, m^2/s^2.
+        key: noise key; ``noise_std`` (m/s, scalar, may be traced) on fluid nodes of frame t.
+        checkpoint: every frame under ``jax.checkpoint`` (same values, less memory).
+    Returns:
+        scalar loss (dimensionless).
+    """
+    v0 = v_win[0]
+    noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
+    v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
+    w = graph.predicted.astype(v0.dtype)
+    norm = 3 * jnp.maximum(w.sum(), 1.0)
+    s_dv = model.stats.target.std[:2]
+
+    def body(v, data):
+        v_next, p_next = data
+        new_v, p = model.advance(params, graph, v, v0)  # boundary nodes held at the data
+        err_v = (new_v - v_next) / s_dv
+        err_p = (p - p_next) / model.stats.target.std[2]
+        loss = (jnp.sum(w[:, None] * err_v**2) + jnp.sum(w * err_p**2)) / norm
+        return new_v, loss
+
+    _, losses = scan_frames(body, v_in, (v_win[1:], p_win),
+                            checkpoint_block=1 if checkpoint else None)
+    return losses.mean()
+
+
+def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
+    if not stages:
+        raise InputError("--stages", "no stage given", "e.g. 4000:0.005:1")
+    if stages[-1].until != tcfg.steps:
+        raise InputError("--stages", f"the last stage ends at {stages[-1].until}, the run at "
+                         f"{tcfg.steps} steps", "make them equal")
+    k = max(s.unroll for s in stages)
+    if k > n_frames - 1:
+        raise InputError("--stages", f"unroll {k} needs {k + 1} frames; the trajectories have "
+                         f"{n_frames}")
+
+
+def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
+                 stages: Sequence[Stage], progress: bool = True) -> tuple[MeshNet, dict]:
+    """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
+    ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
+    and ``out_dir/model``. Returns (model, params)."""
+    out = Path(out_dir)
+    trajs = load_cylinder(train_path)
+    padding = padding_for(trajs)
+    vel, pres = padded_fields(trajs, padding[0])
+    T, F = vel.shape[:2]
+    _check(stages, tcfg, F)
+    model = MeshNet(cfg, stats_from_metadata(read_metadata(train_path), trajs, 0.0,
+                                             cfg.viscosity_feature),
+                    frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
+    graphs = graphs_of(trajs, padding)
+    model.check_graph(graphs)
+    opt = make_optimizer(tcfg)
+    params = model.init_network(jax.random.PRNGKey(tcfg.seed),
+                                jax.tree_util.tree_map(lambda a: a[0], graphs))
+    updates: dict = {}
+
+    def update_fn(k: int):
+        def batch_loss(params, g, v, p, key, noise):
+            keys = jax.random.split(key, v.shape[0])
+            f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise)
+            return jax.vmap(f)(g, v, p, keys).mean()
+
+        @jax.jit
+        def update(params, opt_state, g, v, p, key, noise):
+            loss, grads = jax.value_and_grad(batch_loss)(params, g, v, p, key, noise)
+            upd, opt_state = opt.update(grads, opt_state, params)
+            return optax.apply_updates(params, upd), opt_state, loss
+        return update
+
+    def one_step(params, opt_state, step):
+        st = stage_at(stages, step)
+        k = st.unroll
+        if k not in updates:
+            updates[k] = update_fn(k)
+        rng, key = step_rng(tcfg.seed, step)
+        ti = rng.integers(0, T, tcfg.batch_size)
+        fi = rng.integers(0, F - k, tcfg.batch_size)
+        win = fi[:, None] + np.arange(k + 1)
+        g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
+        params, opt_state, loss = updates[k](
+            params, opt_state, g, vel[ti[:, None], win], pres[ti[:, None], win[:, 1:]], key,
+            jnp.asarray(st.noise_std, vel.dtype))
+        return params, opt_state, (loss, st.noise_std, k)
+
+    info = dict(train=dataclasses.asdict(tcfg), data=str(train_path), n_trajectories=T,
+                stages=[dataclasses.asdict(s) for s in stages],
+                frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages")
+    opt_state = opt.init(params)
+    try:
+        params, _, step = fit(one_step, params, opt_state, tcfg, out, info,
+                              ["loss", "noise_std", "unroll"], desc="meshgraphnet stages",
+                              progress=progress)
+    except TrainingInterrupted as e:  # SIGTERM/SIGINT: the model of the checkpoint, then exit
+        params, _, step = load_checkpoint(e.checkpoint, params, opt_state)
+        save_model(out / "model", model, params, padding, dict(info, steps=step))
+        raise
+    save_model(out / "model", model, params, padding, dict(info, steps=step))
+    return model, params
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m diffgns.mesh.stages",
+                                description="train a MeshGraphNet in stages (resumable)")
+    p.add_argument("--data", required=True, help="cylinder dataset (.h5 with metadata)")
+    p.add_argument("--out", required=True, help="run folder (resumed if it has a checkpoint)")
+    p.add_argument("--stages", required=True, help="UNTIL:NOISE[:K],...: steps, noise (m/s), "
+                   "unroll frames; the last UNTIL is the run's length")
+    p.add_argument("--latent", type=int, default=64)
+    p.add_argument("--mp-steps", type=int, default=6)
+    p.add_argument("--batch-size", type=int, default=2)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr-final", type=float, default=1e-5)
+    p.add_argument("--lr-decay-steps", type=int, default=None, help="default: the run length")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint-every", type=int, default=250)
+    a = p.parse_args(argv)
+    stages = parse_stages(a.stages)
+    n = stages[-1].until
+    for name in ("latent", "mp_steps", "batch_size"):
+        if getattr(a, name) < 1:
+            raise InputError(f"--{name.replace('_', '-')}", f"must be >= 1, got "
+                             f"{getattr(a, name)}")
+    if not (a.lr > 0 and a.lr_final > 0):
+        raise InputError("--lr/--lr-final", f"must be > 0, got {a.lr}, {a.lr_final}")
+    tcfg = TrainConfig(steps=n, batch_size=a.batch_size, lr=a.lr, lr_final=a.lr_final,
+                       lr_decay_steps=a.lr_decay_steps or n, seed=a.seed,
+                       checkpoint_every=a.checkpoint_every)
+    cfg = MeshNetConfig(latent=a.latent, mp_steps=a.mp_steps, noise_std=stages[0].noise_std)
+    train_staged(a.data, a.out, cfg, tcfg, stages)
+    print(f"model written to {a.out}/model")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    try:
+        sys.exit(main())
+    except InputError as e:
+        sys.exit(f"error: {e}")

@@ -1,0 +1,157 @@
+"""Reynolds-number sweeps on ONE cylinder geometry and ONE mesh: the learnable MeshGraphNet task.
+
+Issue 23: the earlier datasets drew geometry, Reynolds number and inflow per flow on ~2,100-node
+meshes and the network never learnt to shed. A sweep fixes what the network need not learn:
+
+* the Schäfer-Turek channel (2.2 x 0.41 m, cylinder D = 0.1 m at (0.2, 0.2) m) and one coarse
+  mesh (~1,300 vertices, :data:`COARSE_MESH`; checked against the 2,121-vertex dataset mesh and
+  Schäfer-Turek 2D-2 in ``docs/guides/meshnet.md``);
+* the peak inflow speed ``Um`` (1.5 m/s by default, ``Ubar = 1`` m/s); only the viscosity
+  changes, ``nu = Ubar D / Re``, so the network's ln(nu) input is ln(Re) up to a constant;
+* a frame interval of 0.02 s: ~14-17 frames per shedding period for Re 100-250 (St 0.30-0.36
+  at ``Ubar / D = 10`` Hz).
+
+One long trajectory per Reynolds number, stored after a spin-up (a short spin pulse of the
+cylinder, ``kick``, breaks the symmetry so shedding starts within a few periods); training
+cuts it into windows (one-step samples or K-frame unrolls). Trajectory ``i`` is the CFD run
+of ``reynolds[i]``, independent of the others, so runs go to ``workers`` processes (one core
+each) and an interrupted sweep resumes by skipping stored keys
+(:class:`~diffgns.mesh.dataset.CylinderDatasetWriter`).
+
+Command line (``make meshnet-data`` runs the training and held-out sweeps)::
+
+    python -m diffgns.mesh.sweep --out data/sweep_train.h5 --re 100 125 150 175 200 225 250
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+from diffgns.errors import InputError
+from diffgns.mesh.datagen import CylinderRun, simulate_case
+from diffgns.mesh.dataset import CylinderDatasetWriter
+
+#: mesh settings of the sweep (vertex count and the check against the finer meshes in the
+#: guide): edge 0.01 m at the cylinder, 0.02 m along 1 m of wake, at most 0.045 m elsewhere.
+COARSE_MESH = dict(size_cylinder=0.01, size_far=0.045, grading=0.3, size_wake=0.02)
+
+#: Reynolds numbers of ``make meshnet-data``: training (7, evenly spaced over 100-250) and
+#: held-out (3 between training values, 2 outside the range).
+TRAIN_RE = (100.0, 125.0, 150.0, 175.0, 200.0, 225.0, 250.0)
+HELDOUT_RE = (110.0, 165.0, 220.0, 85.0, 275.0)
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A Reynolds-number sweep (SI units).
+
+    Attributes:
+        reynolds: ``Re = Ubar D / nu`` of each trajectory, in order (> 0).
+        u_max: peak inflow speed ``Um``, m/s (``Ubar = 2 Um / 3``).
+        radius, center, length, height: the cylinder and the channel, m.
+        run: frames, frame interval, spin-up (in ``D / Ubar``), mesh sizes, CFL and kick
+            (:class:`~diffgns.mesh.datagen.CylinderRun`).
+    """
+
+    reynolds: tuple[float, ...]
+    u_max: float = 1.5
+    radius: float = 0.05
+    center: tuple[float, float] = (0.2, 0.2)
+    length: float = 2.2
+    height: float = 0.41
+    run: CylinderRun = field(default_factory=lambda: CylinderRun(
+        n_frames=201, frame_dt=0.02, spinup=20.0, kick=1.0, kick_time=0.3, **COARSE_MESH))
+
+    def __post_init__(self):
+        re = tuple(float(r) for r in self.reynolds)
+        if not re or not all(math.isfinite(r) and r > 0 for r in re):
+            raise InputError("--re", f"Reynolds numbers must be positive numbers, got "
+                             f"{self.reynolds}", "give at least one Re > 0")
+        object.__setattr__(self, "reynolds", re)
+        for name in ("u_max", "radius", "length", "height"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"--{name.replace('_', '-')}", f"must be > 0, got {v}")
+
+    def case(self, i: int) -> dict:
+        """Case dict of trajectory ``i`` (the keys :func:`simulate_case` reads)."""
+        u_bar = 2.0 * self.u_max / 3.0
+        re = self.reynolds[i]
+        return dict(reynolds=re, u_max=self.u_max, nu=u_bar * 2.0 * self.radius / re,
+                    radius=self.radius, center=list(self.center), length=self.length,
+                    height=self.height)
+
+
+def _simulate(case: dict, run: CylinderRun) -> tuple[dict, dict, float]:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    t0 = time.perf_counter()
+    arrays, attrs = simulate_case(case, run)
+    return arrays, attrs, time.perf_counter() - t0
+
+
+def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
+                   progress: bool = True) -> dict:
+    """Write the trajectories of ``sweep`` to ``path`` (HDF5 + metadata; staged as
+    ``<path>.partial`` until complete; resumes). Returns ``{"wall_s": total wall seconds,
+    "cases": [(key, Re, CFD seconds, Strouhal, lift drift), ...]}`` for the runs made now."""
+    if not (isinstance(workers, int) and workers >= 1):
+        raise InputError("--workers", f"must be a count >= 1, got {workers}")
+    recipe = dict(kind="cylinder-sweep", **asdict(sweep))
+    t0, done = time.perf_counter(), []
+    with CylinderDatasetWriter(path, metadata_extra=dict(sweep=asdict(sweep)), recipe=recipe,
+                               staged=True) as w:
+        todo = [i for i in range(len(sweep.reynolds)) if not w.has(f"{i:05d}")]
+        if todo:
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn")) \
+                    as pool:
+                futs = {pool.submit(_simulate, sweep.case(i), sweep.run): i for i in todo}
+                for fut in as_completed(futs):
+                    i = futs[fut]
+                    arrays, attrs, secs = fut.result()
+                    w.write(f"{i:05d}", arrays, dict(attrs, index=i))
+                    done.append((f"{i:05d}", sweep.reynolds[i], round(secs, 1),
+                                 attrs["strouhal"], attrs["cl_amplitude_drift"]))
+                    if progress:
+                        print(f"  Re {sweep.reynolds[i]:g}: {secs:.0f} s, St "
+                              f"{attrs['strouhal']:.4f}, lift drift "
+                              f"{attrs['cl_amplitude_drift']:.3f}", flush=True)
+        w.finalize()
+    return dict(wall_s=time.perf_counter() - t0, cases=sorted(done))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m diffgns.mesh.sweep", description=__doc__
+                                .split("\n\n")[0])
+    p.add_argument("--out", required=True, help="output .h5 file (resumed if it exists)")
+    p.add_argument("--re", type=float, nargs="+", required=True,
+                   help="Reynolds numbers Ubar D / nu, one trajectory each")
+    p.add_argument("--frames", type=int, default=201, help="stored frames per trajectory")
+    p.add_argument("--frame-dt", type=float, default=0.02, help="time between frames, s")
+    p.add_argument("--spinup", type=float, default=20.0,
+                   help="simulated time before the first stored frame, units of D / Ubar")
+    p.add_argument("--workers", type=int, default=2, help="CFD processes (one core each)")
+    a = p.parse_args(argv)
+    try:
+        run = CylinderRun(n_frames=a.frames, frame_dt=a.frame_dt, spinup=a.spinup, kick=1.0,
+                          kick_time=0.3, **COARSE_MESH)
+    except ValueError as e:
+        raise InputError("--frames/--frame-dt/--spinup", str(e)) from None
+    res = generate_sweep(a.out, Sweep(tuple(a.re), run=run), workers=a.workers)
+    print(f"{a.out}: {len(res['cases'])} new trajectories in {res['wall_s']:.0f} s wall "
+          f"({a.workers} workers)")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    try:
+        sys.exit(main())
+    except InputError as e:
+        sys.exit(f"error: {e}")
