@@ -81,8 +81,9 @@ def test_handoff_moves_particles_with_their_node_and_sets_F():
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
     st = st.replace(F=st.F * 1.01)
     for mode in ("reset", "carry", "reconstruct"):
-        new = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, mode, lo, hi,
-                                   particle_map="rigid")
+        new, clamp = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, mode, lo,
+                                          hi, particle_map="rigid")
+        assert int(clamp.moved) == 0
         np.testing.assert_allclose(new.x - st.x, disp[cluster].T, atol=1e-7)
         np.testing.assert_allclose(new.v, vel[cluster].T, rtol=1e-6)
         np.testing.assert_allclose(new.C[0, 1], 1.0)
@@ -113,18 +114,80 @@ def test_affine_particle_map_follows_a_linear_node_field():
     dt = 0.005
     vel, gv, gu = disp / dt, jnp.broadcast_to(G / dt, (4, 2, 2)), jnp.broadcast_to(G, (4, 2, 2))
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
-    new = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
+    new, clamp = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
+    assert int(clamp.moved) == 0
     want = st.x + (u0 + (st.x.T - x0) @ G.T).T
     np.testing.assert_allclose(new.x, want, atol=1e-7)
     np.testing.assert_allclose(node_means(new.x, cluster, counts), x_node + disp, atol=1e-7)
     # velocity of the field at the particle's new position (nodes moved by disp)
     v_want = (vel[cluster] + (new.x.T - (x_node + disp)[cluster]) @ (G / dt).T).T
     np.testing.assert_allclose(new.v, v_want, rtol=1e-5, atol=1e-6)
-    rigid = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi,
-                                 particle_map="rigid")
+    rigid, _ = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi,
+                                    particle_map="rigid")
     spread = lambda y: np.asarray(y - node_means(y, cluster, counts)[cluster].T)  # noqa: E731
     np.testing.assert_allclose(spread(rigid.x), spread(st.x), atol=1e-7)
     assert np.abs(spread(new.x) - spread(st.x)).max() > 1e-4  # the affine map deforms
+
+
+def _quadrants(st):
+    x = np.asarray(st.x)
+    cluster = jnp.asarray((x[0] > np.median(x[0])).astype(np.int32)
+                          + 2 * (x[1] > np.median(x[1])))
+    return cluster, jnp.bincount(cluster)
+
+
+def _scale_of(new_off, off, step):
+    """(s, residual): the least-squares s with new_off = off + s step, and the misfit (m)."""
+    d, a = np.ravel(new_off - off), np.ravel(step)
+    s = float(d @ a / (a @ a))
+    return s, float(np.abs(d - s * a).max())
+
+
+def test_particle_map_keeps_every_cluster_inside_the_box():
+    """A stretch that would carry the wall-side particles of the left clusters through the
+    left wall: those clusters fall back towards rigid just enough (one factor per cluster, the
+    cluster mean stays the node, the outermost particle ends inside), the right clusters
+    follow the affine field exactly; where even the rigid move crosses the wall the cluster
+    contracts about its node. Nothing is clamped."""
+    sim = MPM(small_scene())  # column on [0, 0.1] m against the left wall of a 0.8 m box
+    st = sim.init()
+    cluster, counts = _quadrants(st)
+    x_node = node_means(st.x, cluster, counts)
+    lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
+    G = jnp.array([[0.5, 0.0], [0.0, 0.0]])  # 50% stretch in x over the frame
+    zero, gu = jnp.zeros((4, 2)), jnp.broadcast_to(G, (4, 2, 2))
+    new, clamp = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry",
+                                      lo, hi)
+    assert int(clamp.moved) == 0
+    x, x0 = np.asarray(new.x), np.asarray(st.x)
+    assert (x >= np.asarray(lo)[:, None]).all() and (x <= np.asarray(hi)[:, None]).all()
+    np.testing.assert_allclose(node_means(new.x, cluster, counts), x_node, atol=1e-7)
+    r = x0 - np.asarray(x_node)[np.asarray(cluster)].T
+    step = np.asarray(G) @ r
+    assert (x0[0] + step[0] < 0).any()  # the unlimited affine map would cross the wall
+    left = np.asarray(x_node)[:, 0] < 0.05
+    for k in range(4):
+        m = np.asarray(cluster) == k
+        s, resid = _scale_of(x[:, m] - x0[:, m], 0 * r[:, m], step[:, m])
+        assert resid < 1e-7  # one factor per cluster: the affine shape, scaled
+        if left[k]:
+            assert 0.0 < s < 1.0 and x[0, m].min() < 1e-4  # just enough to stay inside
+        else:
+            assert s == pytest.approx(1.0, abs=1e-6)  # fits: the affine map unchanged
+    # a rigid move of 2 cm to the left: the left clusters' wall-side particles would cross
+    disp = jnp.asarray([[-0.02, 0.0]] * 4)
+    new, clamp = particles_from_nodes(st, cluster, x_node, disp, disp / 0.005, gu * 0, gu * 0,
+                                      "carry", lo, hi, particle_map="rigid")
+    assert int(clamp.moved) == 0
+    x = np.asarray(new.x)
+    assert (x >= 0).all()
+    np.testing.assert_allclose(node_means(new.x, cluster, counts), x_node + disp, atol=1e-7)
+    for k in range(4):
+        m = np.asarray(cluster) == k
+        off = x[:, m] - np.asarray(x_node + disp)[k][:, None]
+        lam, resid = _scale_of(off, 0 * r[:, m], r[:, m])
+        assert resid < 1e-7
+        assert (0.0 < lam < 1.0) if left[k] else lam == pytest.approx(1.0, abs=1e-6)
 
 
 def test_mpm_only_schedule_is_the_mpm(model):

@@ -19,6 +19,9 @@ weights), ``state`` what evolves. Simulators whose state holds something allocat
 re-allocates outside ``jit`` and redoes the rollout with :func:`retry_on_overflow`, or
 simply calls :func:`rollout_safe`.
 
+Particle simulators also count every position clamp per frame (``frame.clamp``, a
+:class:`~diffgns.clamp.ClampCount`), so a clamp never hides an escape.
+
 Time is in frames of ``sim.frame_dt`` seconds. Nothing here knows which simulator it holds.
 """
 from __future__ import annotations
@@ -30,6 +33,8 @@ from typing import Any, Generic, NamedTuple, Protocol, TypeVar, runtime_checkabl
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from diffgns.clamp import ClampCount
 
 __all__ = [
     "Simulator", "ParticleFrame", "rollout", "rollout_jit", "rollout_safe", "scan_frames",
@@ -71,11 +76,15 @@ class ParticleFrame(NamedTuple):
         velocities: (N, d) m/s.
         overflow: bool scalar, True if a neighbour list overflowed at or before this frame
             (the frame and all later ones are then invalid; always False for the MPM).
+        clamp: :class:`~diffgns.clamp.ClampCount` of the frame: positions a domain clamp
+            moved while computing it, and the largest move (m). Never silent: every
+            simulator counts its clamps here (:mod:`diffgns.clamp`).
     """
 
     positions: jax.Array
     velocities: jax.Array
     overflow: jax.Array
+    clamp: ClampCount
 
 
 class NeighborOverflowError(RuntimeError):

@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from diffgns.clamp import clamp_summary
+
 # Particle types, following the convention of the published GNS datasets.
 KINEMATIC = 3
 FLUID = 5
@@ -27,6 +29,10 @@ class Trajectory:
         material: (N,) float material feature, tan(friction angle) for sand, 0 otherwise.
         frame_dt: time between frames in s (static).
         bounds: ((xmin, xmax), (ymin, ymax)) of the domain in m (static).
+        clamped: (T,) int32 positions a domain clamp moved in each frame (the simulator's
+            :class:`~diffgns.clamp.ClampCount`), or None when the trajectory was not made by a
+            simulator (a dataset, a reference file).
+        clamp_shift: (T,) largest distance a clamp moved a position in each frame, m, or None.
     """
 
     positions: jax.Array
@@ -35,6 +41,8 @@ class Trajectory:
     material: jax.Array
     frame_dt: float = struct.field(pytree_node=False, default=2.5e-3)
     bounds: tuple = struct.field(pytree_node=False, default=((0.0, 1.0), (0.0, 1.0)))
+    clamped: jax.Array | None = None
+    clamp_shift: jax.Array | None = None
 
     @property
     def n_frames(self) -> int:
@@ -43,6 +51,13 @@ class Trajectory:
     @property
     def n_particles(self) -> int:
         return self.positions.shape[1]
+
+    def clamp_summary(self) -> dict | None:
+        """:func:`diffgns.clamp.clamp_summary` of the recorded clamps (None if none recorded)."""
+        if self.clamped is None:
+            return None
+        shift = self.clamp_shift if self.clamp_shift is not None else jnp.zeros(self.n_frames)
+        return clamp_summary(self.clamped, shift)
 
     @property
     def times(self) -> jax.Array:

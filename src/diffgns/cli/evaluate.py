@@ -20,6 +20,7 @@ def _rollout(args) -> int:
     args.model = model_folder(args.model)
     if _is_mesh_model(args.model):
         return _rollout_mesh(args)
+    from diffgns.clamp import clamp_warning
     from diffgns.graph.data import load_trajectories
     from diffgns.graph.evaluate import rollout_reference, score
     from diffgns.graph.train_loop import load_model
@@ -32,6 +33,9 @@ def _rollout(args) -> int:
     s = score(pred, ref, start=gns.config.history)
     s["rollout_s"] = sec
     print(json.dumps(s, indent=2))
+    warn = clamp_warning(s, "the GNS rollout")
+    if warn:
+        print(warn)
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
@@ -72,6 +76,7 @@ def _rollout_mesh(args) -> int:
 def _hybrid(args) -> int:
     import jax.numpy as jnp
 
+    from diffgns.clamp import clamp_warning
     from diffgns.graph.train_loop import load_model
     from diffgns.hybrid.compare import compare, compare_scene
     from diffgns.hybrid.simulator import Schedule
@@ -91,10 +96,16 @@ def _hybrid(args) -> int:
     else:
         out = compare(model, args.aspect_ratio, args.friction_angle, sched, args.frames,
                       args.reference_cells, args.cells_across)
-    print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s}")
+    print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s} "
+          f"{'clamped':>8s}")
     for r in out["rows"]:
         print(f"{r['label']:44s} {r['runout_error']:10.3f} "
-              f"{1e3 * r['mean_position_error_m']:10.2f} {r['seconds']:8.3f}")
+              f"{1e3 * r['mean_position_error_m']:10.2f} {r['seconds']:8.3f} "
+              f"{r['clamped_positions']:8d}")
+    for r in out["rows"]:
+        warn = clamp_warning(r, r["label"])
+        if warn:
+            print(warn)
     dest = Path(args.out)
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "hybrid_comparison.json").write_text(json.dumps(out["rows"], indent=2))

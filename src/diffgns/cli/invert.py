@@ -4,7 +4,7 @@
     diffgns invert scenes/sand_into_obstacle.toml --fit friction_angle=40:0:90 \\
         --observation results/obs/trajectory.h5 --simulator mpm --out results/invert
     diffgns invert scenes/sand_into_obstacle.toml --fit friction_angle=40:0:90 \\
-        --observed-runout 0.30 --frames 200 --simulator gns --model gns_columns
+        --observed-runout 0.30 --frames 200 --simulator gns
 
 The scene file gives everything not fitted. ``--fit name=start:lo:hi`` (repeatable) names a
 parameter (any ``MPMParams`` leaf, see :mod:`diffgns.inverse.parameters`, or
@@ -68,7 +68,7 @@ def run(args) -> int:
     from diffgns.inverse.job import make_objective, make_simulator, solve
     from diffgns.inverse.observation import SceneObservation
     from diffgns.inverse.parameters import parse_fit
-    from diffgns.inverse.simulators import load_gns
+    from diffgns.inverse.simulators import default_model, load_gns
     from diffgns.scene.files import load_scene
 
     t_start = time.perf_counter()
@@ -76,7 +76,6 @@ def run(args) -> int:
         if args.coarse_grain or args.frame_stride:
             raise ValueError("--coarse-grain and --frame-stride are for the MPM alone; with "
                              "--model (or a learned simulator) the model folder sets them")
-        args.model = args.model or "gns_columns"
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
     fits = [parse_fit(s) for s in args.fit]
@@ -84,6 +83,10 @@ def run(args) -> int:
     transforms = {name: tf for name, _, tf in fits if tf is not None}
     truth = dict(parse_fit(s)[:2] for s in args.truth)
     scene = load_scene(args.scene)
+    if args.simulator != "mpm" and not args.model:
+        args.model = default_model(scene)
+        print(f"model: {args.model} (the most accurate shipped model for this scene; "
+              "--model to choose)", flush=True)
     loaded = load_gns(args.model) if args.model else None
     info = loaded[2] if loaded else None
     stride = int(info.get("frame_stride", 1)) if info else (args.frame_stride or 1)
@@ -172,7 +175,8 @@ def register(sub) -> None:
     p.add_argument("--simulator", default="mpm", choices=list(SIMULATORS),
                    help="simulator of the forward model (default mpm)")
     p.add_argument("--model", default=None,
-                   help="GNS model folder or shipped name (gns/hybrid; default gns_columns); "
+                   help="GNS model folder or shipped name (gns/hybrid; default: the most "
+                   "accurate shipped model that supports the scene, gns_cg16_pfn first); "
                    "with the MPM: observe as this model does")
     p.add_argument("--history", default="auto", choices=["auto", "observed", "mpm"],
                    help="GNS initial frames: the observed ones, or a differentiable MPM "

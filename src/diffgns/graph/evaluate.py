@@ -51,8 +51,12 @@ def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = 
         seconds = t["median_s"]
     full = jnp.concatenate([pos[: C + 1], frames.positions[1:]])
     vel = jnp.concatenate([jnp.zeros_like(full[:1]), jnp.diff(full, axis=0)]) / ref.frame_dt
+    given = jnp.zeros(C, frames.clamp.moved.dtype)  # the given frames: no clamp
     traj = Trajectory(positions=full, velocities=vel, particle_type=state.particle_type,
-                      material=params.material, frame_dt=ref.frame_dt, bounds=ref.bounds)
+                      material=params.material, frame_dt=ref.frame_dt, bounds=ref.bounds,
+                      clamped=jnp.concatenate([given, frames.clamp.moved]),
+                      clamp_shift=jnp.concatenate([given.astype(frames.clamp.shift.dtype),
+                                                   frames.clamp.shift]))
     return traj, seconds
 
 
@@ -85,6 +89,7 @@ def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | Non
     ke = metrics.kinetic_energy(jnp.asarray(v), jnp.ones(v.shape[1]))
     out["final_kinetic_energy_per_kg"] = float(ke[-1]) / v.shape[1]
     out["peak_kinetic_energy_per_kg"] = float(jnp.max(ke)) / v.shape[1]
+    out.update(pred.clamp_summary() or {})  # positions the GNS clamped into the box
     return out
 
 

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns.clamp import ClampCount, clamp_positions
 from diffgns.graph.features import ParticleStats, edge_features, node_features
 from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
 from diffgns.graph.networks import EncodeProcessDecode, init_params
@@ -59,7 +60,9 @@ class GNSConfig:
         capacity_multiplier: neighbour-list head-room factor.
         use_material: feed the raw material feature (tan phi) as a node feature.
         clamp_to_bounds: keep predicted positions inside ``bounds`` (the box walls), so no
-            particle ever leaves the domain however inaccurate the network.
+            particle ever leaves the domain however inaccurate the network. Never silent:
+            every position moved is counted in :attr:`GNSState.clamp` and reported per frame
+            (``ParticleFrame.clamp``; :mod:`diffgns.clamp`).
     """
 
     bounds: tuple = ((0.0, 1.0), (0.0, 1.0))
@@ -115,6 +118,8 @@ class GNSState(NamedTuple):
         kinematic: (K, N, d) prescribed positions of the kinematic particles for the next
             K frames (frame ``t + 1`` uses ``kinematic[t]``), or None: they are held.
         t: int32 scalar, frames advanced since :meth:`GNS.init`.
+        clamp: :class:`~diffgns.clamp.ClampCount` of the last frame (positions the domain
+            clamp moved, largest move in m).
     """
 
     history: jax.Array
@@ -122,6 +127,7 @@ class GNSState(NamedTuple):
     particle_type: jax.Array
     kinematic: jax.Array | None
     t: jax.Array
+    clamp: ClampCount
 
 
 class GNS:
@@ -216,14 +222,17 @@ class GNS:
         nbrs = self.allocate(history[:, -1], extra_capacity)
         kin = None if kinematic_path is None else jnp.asarray(kinematic_path, history.dtype)
         return GNSState(history, nbrs, jnp.asarray(particle_type, jnp.int32), kin,
-                        jnp.zeros((), jnp.int32))
+                        jnp.zeros((), jnp.int32), ClampCount.zero(history.dtype))
 
     def advance(self, network, history, particle_type, material, nbrs, kinematic_next=None):
-        """Next positions (N, d) of one semi-implicit Euler step, and the updated list.
+        """Next positions (N, d) of one semi-implicit Euler step, the updated list, and the
+        :class:`~diffgns.clamp.ClampCount` of the step.
 
         ``nbrs`` is updated to the current positions here; ``did_overflow(nbrs)`` tells
         whether edges were dropped (sticky). Kinematic particles go to ``kinematic_next``
-        (N, d) when given, else stay where they are.
+        (N, d) when given, else stay where they are. With ``clamp_to_bounds`` the predicted
+        positions (and any prescribed kinematic position outside the box) are clipped to the
+        box and every clipped position is counted.
         """
         n = history.shape[0]
         x = history[:, -1]
@@ -232,13 +241,14 @@ class GNS:
         acc = self.acceleration(network, history, particle_type, material, senders,
                                 receivers, mask)
         x_next = x + (x - history[:, -2]) + acc
+        target = x if kinematic_next is None else kinematic_next
+        x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
+        clamp = ClampCount.zero(history.dtype)
         if self.config.clamp_to_bounds:
             lo = jnp.asarray([b[0] for b in self.config.bounds], x_next.dtype)
             hi = jnp.asarray([b[1] for b in self.config.bounds], x_next.dtype)
-            x_next = jnp.clip(x_next, lo, hi)
-        target = x if kinematic_next is None else kinematic_next
-        x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
-        return x_next.astype(history.dtype), nbrs
+            x_next, clamp = clamp_positions(x_next, lo, hi, axis=-1)
+        return x_next.astype(history.dtype), nbrs, clamp
 
     def step(self, params: GNSParams, state: GNSState) -> GNSState:
         """Advance one frame (pure)."""
@@ -247,16 +257,16 @@ class GNS:
             kin = jax.lax.dynamic_index_in_dim(state.kinematic, state.t, keepdims=False)
         material = jnp.broadcast_to(jnp.asarray(params.material, state.history.dtype),
                                     state.particle_type.shape)
-        x_next, nbrs = self.advance(params.network, state.history, state.particle_type,
-                                    material, state.nbrs, kin)
+        x_next, nbrs, clamp = self.advance(params.network, state.history,
+                                           state.particle_type, material, state.nbrs, kin)
         hist = jnp.concatenate([state.history[:, 1:], x_next[:, None]], axis=1)
-        return state._replace(history=hist, nbrs=nbrs, t=state.t + 1)
+        return state._replace(history=hist, nbrs=nbrs, t=state.t + 1, clamp=clamp)
 
     def observe(self, state: GNSState) -> ParticleFrame:
-        """Positions (N, d) m, velocities (backward difference, m/s), overflow flag."""
+        """Positions (N, d) m, velocities (backward difference, m/s), overflow flag, clamps."""
         x = state.history[:, -1]
         v = (x - state.history[:, -2]) / self.frame_dt
-        return ParticleFrame(x, v, did_overflow(state.nbrs))
+        return ParticleFrame(x, v, did_overflow(state.nbrs), state.clamp)
 
     def reallocate(self, state: GNSState, frames: ParticleFrame, first_bad: int,
                    attempt: int) -> GNSState:
@@ -273,4 +283,5 @@ class GNS:
                           particle_type=particle_type,
                           material=jnp.broadcast_to(jnp.asarray(params.material),
                                                     particle_type.shape),
-                          frame_dt=self.frame_dt, bounds=self.config.bounds)
+                          frame_dt=self.frame_dt, bounds=self.config.bounds,
+                          clamped=frames.clamp.moved, clamp_shift=frames.clamp.shift)

@@ -61,8 +61,8 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
     n = hist.shape[0]
     over = jnp.zeros((), bool)
     for k in range(unroll):  # push-forward: the model's own predictions, no gradient
-        x_next, nb = gns.advance(jax.lax.stop_gradient(params), hist, particle_type, material,
-                                 nbrs, window[C + 1 + k])
+        x_next, nb, _ = gns.advance(jax.lax.stop_gradient(params), hist, particle_type,
+                                    material, nbrs, window[C + 1 + k])
         over |= did_overflow(nb)
         hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
     target = pushed_target(window, hist, unroll)  # noise and push-forward drift alike

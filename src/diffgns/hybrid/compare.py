@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from diffgns import MPM
+from diffgns.clamp import clamp_summary
 from diffgns.graph.support import check_scene
 from diffgns.graph.support import node_factor as _node_factor
 from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
@@ -85,12 +86,15 @@ def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int, 
 
 
 def run_mpm(scene, n_frames: int, stride: int, repeats: int = 3):
-    """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
+    """(positions (n_frames+1, N, 2) on GNS frames, timing dict with the run's clamp summary
+    (:func:`diffgns.clamp.clamp_summary`, over all MPM frames)) of the MPM alone."""
     sim = MPM(scene)
     p, s = sim.params(), sim.init()
-    t, out = time_call(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
-                       repeats)
-    return np.asarray(out)[::stride], dict(_timing(t), substeps_per_frame=sim.n_sub)
+    t, frames = time_call(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0],
+                          repeats)
+    return np.asarray(frames.positions)[::stride], dict(
+        _timing(t), substeps_per_frame=sim.n_sub,
+        **clamp_summary(frames.clamp.moved, frames.clamp.shift))
 
 
 def node_factor(info: dict, cells_across: int) -> int:
@@ -120,7 +124,7 @@ def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: in
     first, (_, state) = measure(lambda: hyb.run(params, s, n_frames))  # allocates a list
     t, res = time_call(lambda: hyb.run(params, s, n_frames, state=state)[0], repeats,
                        first=first)
-    return res, dict(_timing(t), mpm_fraction=res.mpm_fraction)
+    return res, dict(_timing(t), mpm_fraction=res.mpm_fraction, **res.clamp_summary())
 
 
 def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
@@ -131,7 +135,8 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
     ``model`` is ``(gns, params, info)`` from :func:`~diffgns.graph.train_loop.load_model`;
     ``labels``: names of the reference and the MPM rows (default: their cell sizes).
     Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s, "bounds"}``;
-    each row has the label, the scores of :func:`score_against` and the timing.
+    each row has the label, the scores of :func:`score_against`, the timing and the run's
+    position clamps (``clamped_positions``, ... of :func:`diffgns.clamp.clamp_summary`).
     """
     gns, gp, info = model
     stride = int(info.get("frame_stride", 1))

@@ -18,11 +18,28 @@ GNS nodes are cluster means of MPM particles (:func:`diffgns.graph.data.coarse_g
 
 Gradients of the node fields are least-squares fits over the GNS graph's edges: for node i
 with neighbours j, ``G_i = (sum_j du_ij dX_ij^T) (sum_j dX_ij dX_ij^T)^-1``.
+
+**Each particle stays with its cluster, inside the box** (:func:`keep_inside`). The affine
+map extrapolates the node's gradient to the whole cluster, and nothing in it knows about
+walls. Measured (``gns_cg16_pfn``, column a = 2.5, phi = 24 deg, GNS-only map over 120
+frames): frame after frame the least-squares gradient of a spreading flow stretched the
+clusters (one grew from 1.6 to 6.2 cm across while its node sat 3 cm from the left wall),
+and the particles on the wall side of a node were carried through the wall and clamped
+onto it: 4 particles on a wall at frame 40, 47 at frame 90, on the left wall and the floor.
+The map is therefore limited per cluster: the affine term is scaled by the largest factor
+in [0, 1] that keeps all the cluster's particles inside (falling back towards the rigid map
+only as far as needed); where even the rigid offsets would cross a wall (a node close to a
+wall), the cluster's offsets are then contracted towards the node by the largest factor in
+[0, 1] that fits. Both factors scale offsets about the node, so the cluster mean stays the
+node. A clamp remains only as a safety net for a node outside the box, and it is counted
+(:mod:`diffgns.clamp`).
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
+from diffgns.clamp import clamp_positions
 
 HANDOFFS = ("reset", "carry", "reconstruct")
 PARTICLE_MAPS = ("affine", "rigid")
@@ -61,6 +78,46 @@ def lsq_gradient(u: jax.Array, x: jax.Array, senders, receivers, mask) -> jax.Ar
     return jnp.where(ok[:, None, None], G, 0.0)
 
 
+def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi):
+    """Per-cluster limit of a particle map so that every particle stays inside the box.
+
+    The map puts particle ``p`` of cluster ``k`` at ``x_node[k] + offset[p] + s_k step[p]``
+    (``offset``: the rigid offset from the node, ``step``: the affine term). This returns the
+    positions with the largest ``s_k`` in [0, 1] that keeps all of cluster ``k``'s particles
+    inside ``[lo, hi]`` (the affine term falls back towards rigid only as far as needed), and
+    where even the rigid offsets would cross a wall, the cluster's offsets are then scaled by
+    the largest ``lam_k`` in [0, 1] that keeps them inside (the cluster contracts towards its
+    node, which stays its mean). A cluster that fits is mapped unchanged (s = lam = 1).
+
+    Args:
+        x_node: (2, N) new position of each particle's node (inside the box), m.
+        offset, step: (2, N) rigid offset and affine term of each particle, m.
+        cluster: (N,) node index; n_nodes: M.
+        lo, hi: (2,) box, m. The limit uses the box inset by 1e-6 of its size, so rounding
+            can never put a limited particle outside.
+
+    Returns:
+        (2, N) positions, m.
+    """
+    eps = 1e-6 * jnp.max(hi - lo)
+    lo_in, hi_in = (lo + eps)[:, None], (hi - eps)[:, None]
+
+    def largest(base, d):
+        """(N,) largest t in [0, 1] with lo <= base + t d <= hi on every axis (0 where base
+        itself is outside)."""
+        room = jnp.where(d > 0, hi_in - base, lo_in - base)
+        moving = d != 0
+        t = jnp.where(moving, room / jnp.where(moving, d, 1.0), jnp.inf)
+        inside = jnp.all((base >= lo_in) & (base <= hi_in), axis=0)
+        return jnp.where(inside, jnp.clip(jnp.min(t, axis=0), 0.0, 1.0), 0.0)
+
+    rigid = x_node + offset
+    s = jax.ops.segment_min(largest(rigid, step), cluster, num_segments=n_nodes)
+    off = offset + s[cluster] * step
+    lam = jax.ops.segment_min(largest(x_node, off), cluster, num_segments=n_nodes)
+    return x_node + lam[cluster] * off
+
+
 def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,
                          lo, hi, particle_map: str = "affine"):
     """MPM state after a GNS frame that moved node ``k`` from ``x_node[k]`` by ``disp[k]``.
@@ -74,18 +131,24 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
             gradient over the frame.
         handoff: one of :data:`HANDOFFS`. lo, hi: (2,) domain bounds, m.
         particle_map: one of :data:`PARTICLE_MAPS`.
+
+    Returns:
+        ``(state, ClampCount)``: the new particle state, every particle inside the box by
+        :func:`keep_inside`; the count is of a final safety clamp, which moves a particle only
+        if its node itself is outside the box (the GNS counts that clamp of the node).
     """
     if particle_map not in PARTICLE_MAPS:
         raise ValueError(f"particle_map must be one of {PARTICLE_MAPS}, got {particle_map!r}")
     Gu = jnp.moveaxis(grad_u[cluster], 0, -1)  # (2, 2, N)
     Gv = jnp.moveaxis(grad_v[cluster], 0, -1)
-    x = state.x + disp[cluster].T
+    node_new = (x_node + disp)[cluster].T  # (2, N)
+    r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
+    step = jnp.einsum("abn,bn->an", Gu, r) if particle_map == "affine" else jnp.zeros_like(r)
+    x = keep_inside(node_new, r, step, cluster, x_node.shape[0], lo, hi)
     v = vel[cluster].T
     if particle_map == "affine":
-        r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
-        x = x + jnp.einsum("abn,bn->an", Gu, r)
-        v = v + jnp.einsum("abn,bn->an", Gv, r + jnp.einsum("abn,bn->an", Gu, r))
-    x = jnp.clip(x, lo[:, None], hi[:, None])
+        v = v + jnp.einsum("abn,bn->an", Gv, x - node_new)
+    x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
     C = Gv
     if handoff == "reset":
         F = jnp.broadcast_to(jnp.eye(2, dtype=state.F.dtype)[:, :, None], state.F.shape)
@@ -101,7 +164,7 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     else:
         raise ValueError(f"handoff must be one of {HANDOFFS}, got {handoff!r}")
     return state.replace(x=x.astype(state.x.dtype), v=v.astype(state.v.dtype),
-                         C=C.astype(state.C.dtype), F=F.astype(state.F.dtype))
+                         C=C.astype(state.C.dtype), F=F.astype(state.F.dtype)), clamp
 
 
 def specific_energy(x_prev: jax.Array, x: jax.Array, weights: jax.Array, gravity: jax.Array,

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns.clamp import ClampCount, clamp_summary
 from diffgns.graph.data import coarse_grain_map
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import did_overflow, edges
@@ -126,6 +127,8 @@ class HybridState(NamedTuple):
         count: int32, frames run in the current segment.
         used_mpm: bool, the last frame was an MPM frame.
         t: int32, frames advanced since :meth:`Hybrid.init`.
+        clamp: :class:`~diffgns.clamp.ClampCount` of the last frame: positions moved into the
+            domain by the MPM's substeps, the GNS's node prediction or the particle map.
     """
 
     mpm: Any
@@ -137,11 +140,13 @@ class HybridState(NamedTuple):
     count: jax.Array
     used_mpm: jax.Array
     t: jax.Array
+    clamp: ClampCount
 
 
 class HybridFrame(NamedTuple):
     """What the hybrid observes at a frame: particles (N, 2) m and m/s, nodes (M, 2) m, the
-    simulator of the frame just run (1 = MPM), the indicator (J/kg) and the overflow flag."""
+    simulator of the frame just run (1 = MPM), the indicator (J/kg), the overflow flag and
+    the frame's position clamps (:class:`~diffgns.clamp.ClampCount`)."""
 
     positions: jax.Array
     velocities: jax.Array
@@ -149,6 +154,7 @@ class HybridFrame(NamedTuple):
     mode: jax.Array
     indicator: jax.Array
     overflow: jax.Array
+    clamp: ClampCount
 
 
 @dataclasses.dataclass
@@ -158,7 +164,8 @@ class HybridResult:
     positions: (T+1, N, 2) particle positions, m. nodes: (T+1, M, 2) node positions, m.
     mode: (T,) 0 = GNS frame, 1 = MPM frame. indicator: (T,) energy-balance deviation
     accumulated in the current GNS segment, J/kg (0 on MPM frames). final_state: MPM state
-    after the last frame. frame_dt: s.
+    after the last frame. frame_dt: s. clamped: (T+1,) positions moved into the domain in
+    each frame (MPM substeps, GNS nodes, particle map); clamp_shift: (T+1,) largest move, m.
     """
 
     positions: jax.Array
@@ -167,10 +174,16 @@ class HybridResult:
     indicator: jax.Array
     final_state: object
     frame_dt: float
+    clamped: jax.Array
+    clamp_shift: jax.Array
 
     @property
     def mpm_fraction(self) -> float:
         return float(np.mean(np.asarray(self.mode) == MPM_MODE))
+
+    def clamp_summary(self) -> dict:
+        """:func:`diffgns.clamp.clamp_summary` of the run's clamps."""
+        return clamp_summary(self.clamped, self.clamp_shift)
 
 
 class Hybrid:
@@ -229,7 +242,8 @@ class Hybrid:
         zero = jnp.zeros((), mpm_state.x.dtype)
         i0 = jnp.asarray(0, jnp.int32)
         return HybridState(mpm_state, hist, self.gns.allocate(x, extra_capacity), zero, zero,
-                           jnp.asarray(MPM_MODE, jnp.int32), i0, jnp.asarray(True), i0)
+                           jnp.asarray(MPM_MODE, jnp.int32), i0, jnp.asarray(True), i0,
+                           ClampCount.zero(mpm_state.x.dtype))
 
     def step(self, params: HybridParams, state: HybridState) -> HybridState:
         """One GNS frame or ``frame_stride`` MPM frames, as the schedule says (pure)."""
@@ -262,7 +276,7 @@ class Hybrid:
         """Particles, nodes, mode of the last frame, indicator and overflow flag."""
         return HybridFrame(state.mpm.x.T, state.mpm.v.T, state.history[:, -1],
                            state.used_mpm.astype(jnp.int32), state.indicator,
-                           did_overflow(state.nbrs))
+                           did_overflow(state.nbrs), state.clamp)
 
     def reallocate(self, state: HybridState, frames: HybridFrame, first_bad: int,
                    attempt: int) -> HybridState:
@@ -281,18 +295,21 @@ class Hybrid:
 
     def _mpm_frame(self, mpm_params, s: HybridState) -> HybridState:
         mpm_state = s.mpm
+        clamp = ClampCount.zero(s.mpm.x.dtype)
         for _ in range(self.stride):
             mpm_state = self.mpm.step(mpm_params, mpm_state)
+            clamp = clamp.merge(mpm_state.clamp)
         x_next = self.nodes(mpm_state)
         rate = self._energy_change(mpm_params, s.history, x_next)
         hist = jnp.concatenate([s.history[:, 1:], x_next[:, None]], axis=1)
         return s._replace(mpm=mpm_state, history=hist, indicator=jnp.zeros_like(s.indicator),
-                          rate=rate)
+                          rate=rate, clamp=clamp)
 
     def _gns_frame(self, params: HybridParams, material, s: HybridState) -> HybridState:
         hist = s.history
         x = hist[:, -1]
-        x_next, nbrs = self.gns.advance(params.network, hist, self.node_type, material, s.nbrs)
+        x_next, nbrs, node_clamp = self.gns.advance(params.network, hist, self.node_type,
+                                                    material, s.nbrs)
         x_next = x_next.astype(hist.dtype)
         snd, rcv, msk = edges(nbrs, x.shape[0])
         disp = x_next - x
@@ -301,8 +318,9 @@ class Hybrid:
         sched = self.schedule
         needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
         grad_u = lsq_gradient(disp, x, snd, rcv, msk) if needs_grad_u else jnp.zeros_like(grad_v)
-        mpm_state = particles_from_nodes(s.mpm, self.cluster, x, disp, vel, grad_v, grad_u,
-                                         sched.handoff, self.lo, self.hi, sched.particle_map)
+        mpm_state, map_clamp = particles_from_nodes(
+            s.mpm, self.cluster, x, disp, vel, grad_v, grad_u, sched.handoff, self.lo,
+            self.hi, sched.particle_map)
         if sched.handoff == "reconstruct":  # plastic return mapping of the new F
             mpm_state = mpm_state.replace(F=self.mpm.stress(params.mpm, mpm_state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the
@@ -310,7 +328,8 @@ class Hybrid:
         indicator = s.indicator + jnp.abs(
             self._energy_change(params.mpm, hist, x_next) - s.rate)
         hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
-        return s._replace(mpm=mpm_state, history=hist, nbrs=nbrs, indicator=indicator)
+        return s._replace(mpm=mpm_state, history=hist, nbrs=nbrs, indicator=indicator,
+                          clamp=node_clamp.merge(map_clamp))
 
     # ------------------------------------------------------------------ public
     def run(self, params: HybridParams, mpm_state, n_frames: int,
@@ -324,4 +343,5 @@ class Hybrid:
                                             checkpoint_block=checkpoint_block,
                                             max_retries=max_retries)
         return HybridResult(frames.positions, frames.nodes, frames.mode[1:],
-                            frames.indicator[1:], final.mpm, self.frame_dt), state
+                            frames.indicator[1:], final.mpm, self.frame_dt,
+                            frames.clamp.moved, frames.clamp.shift), state

@@ -38,10 +38,15 @@ from diffgns.models import model_dir
 from diffgns.scene.materials import friction_feature
 
 __all__ = ["Column", "ColumnCase", "DEFAULT_MODEL", "GNSSimulator", "HybridSimulator",
-           "MPMSimulator", "SceneObservation", "check_model", "gns_simulator",
-           "hybrid_simulator", "load_gns", "model_info", "mpm_simulator"]
+           "MODELS_BY_ACCURACY", "MPMSimulator", "SceneObservation", "check_model",
+           "default_model", "gns_simulator", "hybrid_simulator", "load_gns", "model_info",
+           "mpm_simulator"]
 
-DEFAULT_MODEL = "gns_columns"  # a shipped model (diffgns.models.model_path)
+#: shipped particle GNS models, most accurate first (held-out runout error, mean / max, from
+#: their model cards: gns_cg16_pfn 1.4% / 4.4%, gns_cg16_pf 3.2% / 9.5%, gns_cg16 5.5% /
+#: 14.8%, gns_columns 5.3% / 17.3%, gns_small 8.5% / 21.1%)
+MODELS_BY_ACCURACY = ("gns_cg16_pfn", "gns_cg16_pf", "gns_cg16", "gns_columns", "gns_small")
+DEFAULT_MODEL = MODELS_BY_ACCURACY[0]  # a shipped model (diffgns.models.model_path)
 
 
 class MPMSimulator:
@@ -210,6 +215,21 @@ class HybridSimulator:
 def model_info(model: str | Path = DEFAULT_MODEL) -> dict:
     """The ``config.json`` of a GNS model folder or shipped model name (no weights loaded)."""
     return json.loads((model_dir(model, "config.json") / "config.json").read_text())
+
+
+def default_model(scene) -> str:
+    """The most accurate shipped GNS (:data:`MODELS_BY_ACCURACY`) that supports ``scene`` at
+    its own MPM resolution (:func:`~diffgns.graph.support.check_scene`), or
+    :data:`DEFAULT_MODEL` when none does (its refusal then names the mismatch)."""
+    from diffgns.graph.support import UnsupportedSceneError, check_scene
+
+    for name in MODELS_BY_ACCURACY:
+        try:
+            check_scene(scene, model_info(name), "exact", name)
+        except UnsupportedSceneError:
+            continue
+        return name
+    return DEFAULT_MODEL
 
 
 def load_gns(model: str | Path = DEFAULT_MODEL):

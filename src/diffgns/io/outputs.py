@@ -26,6 +26,7 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
     sim = MPM(scene, dtype=dtype)
     params, state = sim.params(), sim.init()
     pos, vel = [np.asarray(state.x.T)[None]], [np.asarray(state.v.T)[None]]
+    clamped, shift = [np.zeros(1, np.int32)], [np.zeros(1)]  # per frame (diffgns.clamp)
     done, chunk_s = 0, []
     with tqdm(total=n_frames, desc="MPM frames", disable=not progress, unit="frame") as bar:
         while done < n_frames:
@@ -36,6 +37,8 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
             chunk_s.append((k, time.perf_counter() - t0))
             pos.append(np.asarray(traj.positions[1:]))
             vel.append(np.asarray(traj.velocities[1:]))
+            clamped.append(np.asarray(traj.clamped[1:]))
+            shift.append(np.asarray(traj.clamp_shift[1:]))
             done += k
             bar.update(k)
     # the first chunk compiles: its compile share is its time minus a steady chunk's
@@ -46,7 +49,8 @@ def run_mpm(scene, n_frames: int, dtype=None, chunk: int = 50, progress: bool = 
     traj = Trajectory(positions=np.concatenate(pos), velocities=np.concatenate(vel),
                       particle_type=np.asarray(sim.particle_type()),
                       material=np.asarray(sim.material_feature(params)),
-                      frame_dt=scene.frame_dt, bounds=scene.domain)
+                      frame_dt=scene.frame_dt, bounds=scene.domain,
+                      clamped=np.concatenate(clamped), clamp_shift=np.concatenate(shift))
     n_sub = scene.substeps
     timing = dict(compile_s=t_compile, run_s=t_run, particles=scene.n_particles,
                   substeps_per_frame=n_sub, substep_dt=scene.substep_dt,
@@ -72,7 +76,9 @@ def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
     Everything is written to a temporary folder beside ``out`` and moved into ``out`` only
     when all of it is written (:func:`diffgns.io.files.staged_dir`), so a failed or
     interrupted call leaves ``out`` as it was. Returns the summary (runout and deposit front
-    in m, both defined in its ``runout_definitions``; ``files`` lists the paths in ``out``).
+    in m, both defined in its ``runout_definitions``; the run's position clamps,
+    ``clamped_positions`` ..., when ``traj`` records them; ``files`` lists the paths in
+    ``out``).
     """
     out = Path(out)
     x = np.asarray(traj.positions)
@@ -99,7 +105,8 @@ def write_outputs(traj: Trajectory, scene, out: str | Path, vtk_every: int = 10,
         summary = dict(final_runout_m=float(run[-1]), deposit_front_m=front,
                        runout_definitions=RUNOUT_DEFINITIONS,
                        frames=int(traj.n_frames), particles=int(traj.n_particles),
-                       files={k: str(v) for k, v in files.items()}, **(extra or {}))
+                       files={k: str(v) for k, v in files.items()},
+                       **(traj.clamp_summary() or {}), **(extra or {}))
         if L0:
             summary["normalised_runout_front"] = (front - L0) / L0
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2, default=str))

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns.clamp import ClampCount, clamp_positions
 from diffgns.errors import UnstableError
 from diffgns.interface import ParticleFrame, rollout_jit
 from diffgns.mpm import boundaries, constitutive
@@ -143,28 +144,32 @@ class MPM:
         v, C = g2p(idx, w, dpos, gv.reshape(2, *self.grid_shape), dx)
         x = state.x + dt * v
         lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
-        x = jnp.clip(x, lo[:, None], hi[:, None])  # never leave the domain (and the grid)
-        return state.replace(x=x, v=v, C=C, F=F)
+        # never leave the domain (and the grid), and count it (diffgns.clamp)
+        x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
+        return state.replace(x=x, v=v, C=C, F=F, clamp=state.clamp.merge(clamp))
 
     def step(self, params: MPMParams, state: MPMState) -> MPMState:
         """Advance one frame (``scene.substeps`` substeps of ``scene.substep_dt`` s)."""
         sub = self.substep
         if self.checkpoint_substeps:
             sub = jax.checkpoint(sub, prevent_cse=False)
+        state = state.replace(clamp=ClampCount.zero(state.x.dtype))  # counts of this frame
         state, _ = jax.lax.scan(lambda s, _: (sub(params, s), None), state, None,
                                 length=self.n_sub)
         return state
 
     def observe(self, state: MPMState) -> ParticleFrame:
-        """Positions (N, 2) m and velocities (N, 2) m/s; the MPM never overflows."""
-        return ParticleFrame(state.x.T, state.v.T, jnp.zeros((), bool))
+        """Positions (N, 2) m, velocities (N, 2) m/s, no overflow (the MPM never overflows)
+        and the frame's domain clamps."""
+        return ParticleFrame(state.x.T, state.v.T, jnp.zeros((), bool), state.clamp)
 
     def trajectory(self, params: MPMParams, frames: ParticleFrame) -> Trajectory:
         """The :class:`Trajectory` of stacked frames (with particle types and tan phi)."""
         return Trajectory(positions=frames.positions, velocities=frames.velocities,
                           particle_type=jnp.asarray(self.particle_type()),
                           material=self.material_feature(params),
-                          frame_dt=self.frame_dt, bounds=self.scene.domain)
+                          frame_dt=self.frame_dt, bounds=self.scene.domain,
+                          clamped=frames.clamp.moved, clamp_shift=frames.clamp.shift)
 
     def run(self, params: MPMParams, state: MPMState, n_frames: int,
             checkpoint_block: int | None = None, check: bool = True

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from diffgns.clamp import ClampCount
 from diffgns.scene.materials import Elastic, Fluid, Sand
 
 
@@ -24,6 +25,8 @@ class MPMState:
         C: (2, 2, N) APIC affine velocity field (velocity gradient), 1/s.
         F: (2, 2, N) elastic deformation gradient.
         vol: (N,) initial particle volumes (areas in 2D), m^2.
+        clamp: :class:`~diffgns.clamp.ClampCount` of the current frame: positions the domain
+            clamp moved in its substeps so far (counted, never silent).
     """
 
     x: jax.Array
@@ -31,6 +34,7 @@ class MPMState:
     C: jax.Array
     F: jax.Array
     vol: jax.Array
+    clamp: ClampCount
 
     @property
     def n_particles(self) -> int:
@@ -45,7 +49,7 @@ class MPMState:
         return MPMState(
             x=jnp.asarray(np.asarray(x).T, dtype), v=jnp.asarray(np.asarray(v).T, dtype),
             C=jnp.zeros((2, 2, n), dtype), F=jnp.asarray(eye, dtype),
-            vol=jnp.asarray(vol, dtype),
+            vol=jnp.asarray(vol, dtype), clamp=ClampCount.zero(dtype),
         )
 
 

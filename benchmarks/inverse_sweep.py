@@ -1,0 +1,153 @@
+"""The inversion table: friction angle recovered from an observed MPM runout, over columns.
+
+    .venv/bin/python benchmarks/inverse_sweep.py [--model gns_cg16_pfn]
+        [--aspect-ratios 0.5 1 1.5 2 2.5 3] [--phis 20 25 30 35 40 45]
+        [--simulators gns mpm] [--start-phi 45] [--max-iter 20] [--out inverse_sweep]
+
+For every column (aspect ratio ``a``; the column of the model's training data:
+``ColumnCase.from_model``, its box, width, MPM resolution, nodes and frame stride) and every
+true friction angle ``phi``, the observation is the MPM collapse at ``phi`` seen as the GNS
+sees it (nodes, frames); ``phi`` is then recovered from the observed final runout (soft
+maximum of the nodes, objective "runout") by the one inverse path of the package
+(:func:`diffgns.inverse.job.make_simulator`, :func:`~diffgns.inverse.job.make_objective`,
+:func:`~diffgns.inverse.job.solve`: Gauss-Newton on logit(phi / 90), exact gradients through
+the checkpointed rollout), through each simulator of ``--simulators``.
+
+Writes ``benchmarks/results/<out>.json`` (every row, with the load average and commit) and
+``<out>.md`` (aspect ratio, true phi, recovered phi, error, iterations, seconds) after every
+case, so an interrupted sweep keeps its rows, and a re-run with the same ``--out`` skips the
+cases already done. The seconds are wall times of the whole job (observation excluded,
+compiling included) on whatever machine state there was: indicative only, the load average
+is recorded next to them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+TARGET_DEG = {"gns": 1.0, "mpm": 0.5, "hybrid": 1.0}  # issue 21's tolerances
+
+
+def key(row: dict) -> tuple:
+    return (row["simulator"], float(row["aspect_ratio"]), float(row["true_phi"]))
+
+
+def markdown(rows: list[dict], model: str) -> str:
+    """The table of ``rows`` (one line per simulator, aspect ratio and true phi)."""
+    lines = [f"Friction angle recovered from the observed MPM runout (model `{model}`; "
+             "seconds: whole job incl. compile, indicative only, load average in brackets)",
+             "", "| simulator | aspect ratio | true φ (°) | recovered φ (°) | error (°) | "
+             "within target | iterations | seconds (load) |", "|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=key):
+        if "failed" in r:
+            lines.append(f"| {r['simulator']} | {r['aspect_ratio']:g} | {r['true_phi']:g} | "
+                         f"failed: {r['failed']} |||||")
+            continue
+        ok = abs(r["error_deg"]) <= TARGET_DEG[r["simulator"]]
+        lines.append(
+            f"| {r['simulator']} | {r['aspect_ratio']:g} | {r['true_phi']:g} | "
+            f"{r['recovered_phi']:.2f} | {r['error_deg']:+.2f} | "
+            f"{'yes' if ok else 'no'} (±{TARGET_DEG[r['simulator']]:g}) | {r['iterations']} | "
+            f"{r['seconds']:.0f} ({r['load_1min']:.1f}) |")
+    done = [r for r in rows if "failed" not in r]
+    for sim in sorted({r["simulator"] for r in done}):
+        errs = [abs(r["error_deg"]) for r in done if r["simulator"] == sim]
+        n_ok = sum(e <= TARGET_DEG[sim] for e in errs)
+        lines += ["", f"{sim}: {n_ok}/{len(errs)} cases within ±{TARGET_DEG[sim]:g}°; "
+                  f"mean |error| {sum(errs) / len(errs):.2f}°, max {max(errs):.2f}°"]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default=None, help="GNS model (default: the inverse default)")
+    ap.add_argument("--aspect-ratios", type=float, nargs="+",
+                    default=[0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+    ap.add_argument("--phis", type=float, nargs="+", default=[20, 25, 30, 35, 40, 45])
+    ap.add_argument("--simulators", nargs="+", default=["gns"],
+                    choices=["gns", "mpm", "hybrid"])
+    ap.add_argument("--start-phi", type=float, default=45.0,
+                    help="start of every inversion, deg (a true phi equal to it starts at "
+                         "35 deg instead)")
+    ap.add_argument("--max-iter", type=int, default=20)
+    ap.add_argument("--step-tol", type=float, default=0.01, help="deg")
+    ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
+    args = ap.parse_args(argv)
+
+    from diffgns.inverse.job import make_objective, make_simulator, solve
+    from diffgns.inverse.simulators import (
+        DEFAULT_MODEL,
+        Column,
+        ColumnCase,
+        load_gns,
+        model_info,
+    )
+
+    model = args.model or DEFAULT_MODEL
+    loaded = load_gns(model) if set(args.simulators) - {"mpm"} else None
+    info = loaded[2] if loaded else model_info(model)
+    RESULTS.mkdir(exist_ok=True)
+    jpath, mpath = RESULTS / f"{args.out}.json", RESULTS / f"{args.out}.md"
+    rows: list[dict] = json.loads(jpath.read_text())["rows"] if jpath.exists() else []
+    done = {key(r) for r in rows}
+    work = Path(os.environ.get("TMPDIR", "/tmp")) / f"diffgns_{args.out}"
+    for a in args.aspect_ratios:
+        col = None
+        for phi in args.phis:
+            todo = [s for s in args.simulators if (s, float(a), float(phi)) not in done]
+            if not todo:
+                continue
+            col = col or Column(ColumnCase.from_model(info, a))
+            truth = {"friction_angle": float(phi)}
+            t0 = time.perf_counter()
+            observed = col.observation(truth)
+            t_obs = time.perf_counter() - t0
+            start = args.start_phi if abs(args.start_phi - phi) > 1e-6 else 35.0
+            for sim_kind in todo:
+                theta0 = {"friction_angle": start}
+                print(f"--- {sim_kind}: a = {a:g}, phi = {phi:g} (start {start:g}); "
+                      f"observation {t_obs:.0f} s", flush=True)
+                row = dict(simulator=sim_kind, aspect_ratio=a, true_phi=phi, start_phi=start,
+                           nodes=col.n_nodes, particles=col.scene.n_particles,
+                           observation_s=t_obs)
+                t1 = time.perf_counter()
+                try:
+                    sim = make_simulator(sim_kind, col, model, loaded=loaded,
+                                         observed=observed, theta0=theta0)
+                    objective = make_objective("runout", col, observed=observed)
+                    s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{a:g}_{phi:g}",
+                              max_iter=args.max_iter, step_tol=args.step_tol,
+                              observed=observed, truth=truth, label=sim_kind, t_start=t1)
+                    row.update(recovered_phi=s["recovered"]["friction_angle"],
+                               error_deg=s["error_deg"], iterations=s["iterations"],
+                               converged=s["converged"], stop_reason=s["stop_reason"],
+                               seconds=s["wall_time_s"], compile_s=s["compile_s"],
+                               warnings=s["warnings"])
+                except Exception as e:  # noqa: BLE001 - a failed case is a row of the table
+                    row["failed"] = f"{type(e).__name__}: {e}"[:200]
+                    row["seconds"] = time.perf_counter() - t1
+                row["load_1min"] = os.getloadavg()[0]
+                rows.append(row)
+                done.add(key(row))
+                jpath.write_text(json.dumps(dict(
+                    model=model, settings=vars(args), commit=_commit(), rows=rows),
+                    indent=2))
+                mpath.write_text(markdown(rows, model))
+    print(markdown(rows, model))
+    print(f"wrote {jpath} and {mpath}")
+
+
+def _commit() -> str:
+    import subprocess
+
+    p = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                       text=True, cwd=Path(__file__).parent)
+    return p.stdout.strip()
+
+
+if __name__ == "__main__":
+    main()
