@@ -11,7 +11,7 @@ MIN_VENV ?= .venv-min
 MIN_TESTS ?= tests/test_scene.py tests/test_mpm_physics.py tests/test_linalg.py \
 	tests/test_graph_networks.py tests/test_graph_neighbors.py tests/test_packaging.py
 
-.PHONY: demo collapse test test-min test-slow docs bench bench-gns symbolic lint venv
+.PHONY: demo collapse test test-min test-slow test-distributed docs bench bench-gns symbolic lint venv
 
 $(VENV)/.installed-%: pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -57,6 +57,11 @@ test-min: $(MIN_VENV)/.installed
 # the docs site (mkdocs.yml, docs/; API reference from the docstrings) into site/
 docs: $(VENV)/.installed-docs
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
+
+# two real processes on this machine (jax.distributed, localhost coordinator, gloo): GNS
+# training equal to one process, sharded dataset generation merged equal to one process
+test-distributed: $(VENV)/.installed-test
+	$(PY) -m pytest -q -p no:cacheprovider tests/test_distributed.py
 
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow

@@ -156,3 +156,43 @@ def test_resume_after_a_hard_kill_drops_later_log_rows_and_keeps_counting_second
     assert [int(r["step"]) for r in rows] == [5, 10, 15, 20, 25, 30]
     assert float(rows[4]["seconds"]) >= before and float(rows[4]["seconds"]) != 999.0
     assert [json.loads(s)["step"] for s in valid.read_text().splitlines()] == [10, 20, 30]
+
+
+def test_checkpoints_are_orbax_and_a_killed_save_keeps_the_previous_one(tmp_path):
+    """The run folder holds one orbax step folder (the newest) and the sidecar; an
+    unfinished orbax save (a temporary folder left by a hard kill) is ignored on resume."""
+    _fit(tmp_path, 20)
+    ck = tmp_path / CHECKPOINT
+    assert sorted(p.name for p in ck.iterdir()) == ["20"]
+    assert (ck / "20" / "state").is_dir() and (ck / "20" / "host").is_dir()
+    (ck / "30.orbax-checkpoint-tmp-123").mkdir()  # a save killed before its rename
+    update, p0, s0 = _problem(_cfg(30))
+    _, _, step = load_checkpoint(tmp_path, p0, s0)
+    assert step == 20
+    p, _, _ = _fit(tmp_path, 30)
+    ref, _, _ = _fit(tmp_path / "ref", 30)
+    np.testing.assert_array_equal(np.asarray(p["w"]), np.asarray(ref["w"]))
+
+
+def test_a_run_with_a_legacy_msgpack_checkpoint_resumes_exactly(tmp_path):
+    """Runs written before orbax left ``checkpoint.msgpack`` (flax msgpack of params,
+    optimiser state, step and host): fit resumes from it, bit-identical, and saves in orbax."""
+    from flax import serialization
+
+    from diffgns.graph.fit import LEGACY_CHECKPOINT, checkpoint_host_state
+
+    p20, s20, _ = _fit(tmp_path / "a", 20)
+    state = serialization.to_state_dict(dict(params=p20, opt_state=s20, step=np.asarray(20)))
+    state["host"] = dict(seconds=1.5)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / LEGACY_CHECKPOINT).write_bytes(serialization.msgpack_serialize(state))
+    assert checkpoint_host_state(old / LEGACY_CHECKPOINT) == {"seconds": 1.5}
+    update, p0, s0 = _problem(_cfg(30))
+    assert load_checkpoint(old / LEGACY_CHECKPOINT, p0, s0)[2] == 20
+    p, _, step = _fit(old, 30)
+    ref, _, _ = _fit(tmp_path / "ref", 30)
+    assert step == 30
+    np.testing.assert_array_equal(np.asarray(p["w"]), np.asarray(ref["w"]))
+    assert load_checkpoint(old, p0, s0)[2] == 30  # now from orbax
+    assert checkpoint_host_state(old)["seconds"] >= 1.5

@@ -126,11 +126,11 @@ def test_training_reduces_loss_and_resumes_exactly(tmp_path):
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5])
     nbrs.clear()
     half, opt, _ = run(p0, tr.opt.init(p0), 0, 30)
-    save_checkpoint(tmp_path / "c.msgpack", half, opt, 30, {})
+    save_checkpoint(tmp_path / "ckpt", half, opt, 30, {})
     at_30 = nbrs.state_dict()
     nbrs.load_state_dict(at_30)  # a resumed process: no lists, the saved capacities
     assert len(nbrs) == 0 and set(at_30) == {"16"}
-    p, o, step = load_checkpoint(tmp_path / "c.msgpack", p0, tr.opt.init(p0))
+    p, o, step = load_checkpoint(tmp_path / "ckpt", p0, tr.opt.init(p0))
     assert step == 30
     for a, b in zip(jax.tree.leaves((half, opt)), jax.tree.leaves((p, o))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # state restored exactly

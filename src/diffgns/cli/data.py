@@ -34,20 +34,69 @@ def _simulate(args) -> int:
     return 0
 
 
+def shard_arg(text: str):
+    """argparse type of ``--shard``: ``i/n`` with n >= 1 and 0 <= i < n."""
+    import argparse
+
+    from diffgns.errors import InputError
+    from diffgns.shard import Shard
+
+    try:
+        return Shard.parse(text)
+    except InputError as e:
+        raise argparse.ArgumentTypeError(f"{e.problem}; {e.fix}") from None
+
+
 def _dataset(args) -> int:
     from diffgns.errors import InputError
 
+    if args.merge:
+        return _merge(args)
+    joined = _join(args)
+    from diffgns.shard import Shard
+
+    shard = args.shard or (Shard.of_process() if joined else Shard())
+    if shard.count > 1 and args.kind not in ("column", "squares"):
+        raise InputError("--shard", f"--kind {args.kind} is generated in one process",
+                         "shard --kind column or squares, or drop --shard/--distributed")
     check_dataset(args)
+    from diffgns.io.shards import shard_path
+
     try:
-        return _generate(args)
+        _generate(args, shard)
     except InputError as e:  # the writer's refusal of the --out file (e.g. another recipe)
-        if e.field.startswith(str(args.out)):
+        if e.field.startswith(str(args.out)) or e.field.startswith(str(shard_path(args.out,
+                                                                                  shard))):
             raise InputError(f"--out {e.field}", e.problem, e.fix) from None
         raise
     except BaseException as e:
         if not isinstance(e, Exception):  # KeyboardInterrupt or Interrupted: say what is kept
-            e.detail = _kept(Path(args.out))  # type: ignore[attr-defined]
+            e.detail = _kept(shard_path(args.out, shard))  # type: ignore[attr-defined]
         raise
+    if joined and args.shard is None and shard.count > 1:  # every process done: merge once
+        from diffgns.distributed import barrier, is_main
+        from diffgns.io.shards import merge_shards, shards_of
+
+        barrier("diffgns-dataset-shards-written")
+        if is_main():
+            print(f"dataset written to {merge_shards(shards_of(args.out, shard.count), args.out)}")
+        barrier("diffgns-dataset-merged")
+    return 0
+
+
+def _join(args) -> bool:
+    """Join a multi-process run if the options ask for one (before any JAX computation)."""
+    from diffgns.distributed import initialize
+
+    return initialize(args.coordinator, args.num_processes, args.process_id,
+                      auto=args.distributed)
+
+
+def _merge(args) -> int:
+    from diffgns.io.shards import merge_shards
+
+    print(f"dataset written to {merge_shards(args.merge, args.out)}")
+    return 0
 
 
 def _kept(out: Path) -> str:
@@ -62,7 +111,7 @@ def _kept(out: Path) -> str:
     return "no trajectory was finished; nothing written"
 
 
-def _generate(args) -> int:
+def _generate(args, shard) -> int:
     if args.kind == "cylinder":
         return _dataset_cylinder(args)
     if args.kind == "granular":  # issue 21: random scenes of every family
@@ -77,9 +126,9 @@ def _generate(args) -> int:
         path = generate_columns(args.out, args.aspect_ratios, args.friction_angles, args.frames,
                                 width=args.width, cells_across=args.cells_across,
                                 batch=args.batch, domain_length=args.domain_length,
-                                domain_height=args.domain_height)
+                                domain_height=args.domain_height, shard=shard)
     else:
-        path = generate_squares(args.out, args.n, args.frames, seed=args.seed,
+        path = generate_squares(args.out, args.n, args.frames, seed=args.seed, shard=shard,
                                 **squares_kw(args))
     print(f"dataset written to {path}")
     return 0
@@ -157,8 +206,12 @@ def register(sub) -> None:
 
     d = sub.add_parser("dataset", help="generate an HDF5 training set with the MPM or, for "
                        "--kind cylinder, the cylinder-flow CFD (resumable)")
-    d.add_argument("--kind", choices=["column", "squares", "granular", "cylinder"],
-                   required=True, help="column collapses over (aspect ratio x friction angle), "
+    what = d.add_mutually_exclusive_group(required=True)
+    what.add_argument("--merge", nargs="+", metavar="SHARD", default=None,
+                      help="merge the shard files of --shard 0/n .. n-1/n (all of them, one "
+                      "recipe) into --out, identical to a one-process run")
+    what.add_argument("--kind", choices=["column", "squares", "granular", "cylinder"],
+                   help="column collapses over (aspect ratio x friction angle), "
                    "random granular squares, random scenes of the granular --families, or "
                    "cylinder flows")
     d.add_argument("--families", nargs="+", default=["squares", "columns", "obstacles",
@@ -222,4 +275,11 @@ def register(sub) -> None:
     c.add_argument("--cfl", type=finite, default=0.15,
                    help="largest Um dt / h_min, dimensionless (sets the CFD time step; "
                    "default 0.15)")
+    d.add_argument("--shard", type=shard_arg, default=None, metavar="I/N",
+                   help="column/squares: make only shard I of N (every N-th unit of work) into "
+                   "<out stem>.shard-I-of-N.h5, resumable; merge with --merge (default: "
+                   "all, or this process's share under --distributed/--coordinator)")
+    from diffgns.cli.train import add_distributed_arguments
+
+    add_distributed_arguments(d)
     d.set_defaults(func=_dataset)

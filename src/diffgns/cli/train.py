@@ -15,12 +15,26 @@ def _check_inputs(args) -> None:
     if args.valid:
         check_input_file(args.valid, "--valid", metadata=True)
 
+def _join(args) -> None:
+    """Join a multi-process run (before any JAX computation) if the options ask for one."""
+    from diffgns.distributed import initialize
+
+    initialize(args.coordinator, args.num_processes, args.process_id, auto=args.distributed)
+
+
 def _train(args) -> int:
     _check_inputs(args)
+    _join(args)
     from diffgns.graph.train_loop import train
     from diffgns.graph.training import TrainConfig
 
     if args.kind == "mesh":
+        from diffgns.distributed import process_count
+        from diffgns.errors import InputError
+
+        if process_count() > 1:
+            raise InputError("--kind mesh", "trains in one process only",
+                             "drop --distributed/--coordinator, or train --kind particles")
         return _train_mesh(args)
     if args.noise_std is None:
         args.noise_std = 6.7e-4
@@ -34,7 +48,10 @@ def _train(args) -> int:
                   attention=args.attention)
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
           frame_stride=args.frame_stride, init_from=args.init_from)
-    print(f"model written to {args.out}/model")
+    from diffgns.distributed import is_main
+
+    if is_main():
+        print(f"model written to {args.out}/model")
     return 0
 
 
@@ -69,6 +86,20 @@ def _average(args) -> int:
         return 2
     print("averaged model written to", out)
     return 0
+
+
+def add_distributed_arguments(p) -> None:
+    """The options that join a multi-process run (docs/guides/distributed.md)."""
+    g = p.add_argument_group("several processes (jax.distributed; docs/guides/distributed.md)")
+    g.add_argument("--distributed", action="store_true",
+                   help="join the run JAX detects from the environment (SLURM srun, Open MPI)")
+    g.add_argument("--coordinator", default=None,
+                   help="host:port of process 0's coordinator (a free port), with "
+                   "--num-processes and --process-id (or DIFFGNS_COORDINATOR, ...)")
+    g.add_argument("--num-processes", type=count, default=None,
+                   help="processes of the run, count (default: one, or DIFFGNS_NUM_PROCESSES)")
+    g.add_argument("--process-id", type=int, default=None,
+                   help="this process's index in 0 .. N-1 (or DIFFGNS_PROCESS_ID)")
 
 
 def register(sub) -> None:
@@ -125,6 +156,7 @@ def register(sub) -> None:
                    help="model folder to fine-tune from (same configuration, fresh optimiser)")
     t.add_argument("--no-viscosity", action="store_true",
                    help="mesh: do not give the flow's viscosity to the network")
+    add_distributed_arguments(t)
     t.set_defaults(func=_train)
 
     a = sub.add_parser("average", help="uniform weight average of GNS models fine-tuned from "

@@ -3,12 +3,17 @@
 :func:`fit` runs ``update(params, opt_state, step)`` until ``TrainConfig.steps`` and owns what
 a training run needs around it, the same for every network:
 
-* **exact resume**: ``out/checkpoint.msgpack`` (params, optimiser state, step, the seconds
-  trained so far and the caller's host state, e.g. neighbour-list capacities; msgpack,
-  written atomically with a JSON sidecar) is loaded if present. Randomness must be a
-  function of (seed, step) (:func:`step_rng`) and every other input of the step either in
-  the checkpoint (``host_state``) or derived from it, so a resumed run is bit-identical to an
-  uninterrupted one;
+* **exact resume**: ``out/checkpoint/`` (orbax, :mod:`diffgns.graph.checkpoints`: params,
+  optimiser state, step, the seconds trained so far and the caller's host state, e.g.
+  neighbour-list capacities; written atomically and asynchronously, with a JSON sidecar
+  ``checkpoint.json``) is loaded if present, or a ``checkpoint.msgpack`` of an older run.
+  Randomness must be a function of (seed, step) (:func:`step_rng`) and every other input of
+  the step either in the checkpoint (``host_state``) or derived from it, so a resumed run is
+  bit-identical to an uninterrupted one;
+* **several processes** (:mod:`diffgns.distributed`): every process runs :func:`fit` with
+  the same arguments; process 0 writes the logs, the sidecar and the validation, all save
+  the checkpoint together (orbax), and a signal seen by any process stops all of them at
+  the same step;
 * **checkpoints** every ``checkpoint_every`` steps and at the end;
 * **logging**: ``out/train_log.csv`` with columns ``step, <metrics>, lr, seconds``: the mean
   of each metric over the last ``log_every`` steps, the learning rate of the next step and
@@ -29,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import os
 import signal
 import sys
 import threading
@@ -40,12 +46,23 @@ from typing import Any, Protocol
 import jax
 import numpy as np
 import optax
-from flax import serialization
 from tqdm import tqdm
 
+from diffgns.distributed import any_process, is_main, to_host
 from diffgns.errors import Interrupted
+from diffgns.graph.checkpoints import (  # re-exported: the checkpoint API of every network
+    CHECKPOINT,
+    LEGACY_CHECKPOINT,
+    Checkpointer,
+    checkpoint_host_state,
+    has_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
 
-CHECKPOINT = "checkpoint.msgpack"
+__all__ = ["CHECKPOINT", "LEGACY_CHECKPOINT", "HostState", "TrainConfig", "TrainingInterrupted",
+           "checkpoint_host_state", "fit", "has_checkpoint", "learning_rate", "load_checkpoint",
+           "make_optimizer", "save_checkpoint", "step_rng"]
 
 #: ``update(params, opt_state, step) -> (params, opt_state, metrics)``; metrics: scalars
 Update = Callable[[Any, Any, int], tuple[Any, Any, Sequence[Any]]]
@@ -107,57 +124,13 @@ class HostState(Protocol):
     does."""
 
     def state_dict(self) -> dict:
-        """msgpack-able snapshot (str keys; ints, floats, lists, numpy arrays)."""
+        """JSON-able snapshot (str keys; ints, floats, strings, lists; numpy arrays are
+        stored as lists)."""
         ...
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a :meth:`state_dict` snapshot."""
         ...
-
-
-def save_checkpoint(path: Path, params, opt_state, step: int, extra: dict,
-                    host: dict | None = None) -> None:
-    """Atomically write params, optimiser state, step and ``host`` (a msgpack-able dict:
-    the seconds trained, the caller's :class:`HostState`) plus a JSON sidecar (``extra`` and
-    the step) next to it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state = serialization.to_state_dict(dict(params=params, opt_state=opt_state,
-                                             step=np.asarray(step)))
-    state["host"] = dict(host or {})
-    blob = serialization.msgpack_serialize(state)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(blob)
-    tmp.replace(path)
-    side = path.with_suffix(".json")
-    side_tmp = side.with_suffix(".json.tmp")
-    side_tmp.write_text(json.dumps(dict(extra, step=step), indent=2, default=str))
-    side_tmp.replace(side)
-
-
-def _read_checkpoint(path: Path, params_template, opt_state_template):
-    raw = serialization.msgpack_restore(Path(path).read_bytes())
-    host = raw.pop("host", {}) or {}
-    target = dict(params=params_template, opt_state=opt_state_template, step=np.asarray(0))
-    d = serialization.from_state_dict(target, raw)
-    return d["params"], d["opt_state"], int(d["step"]), host
-
-
-def load_checkpoint(path: Path, params_template, opt_state_template):
-    """Restore (params, opt_state, step) saved by :func:`save_checkpoint`; the templates
-    give the pytree structure."""
-    return _read_checkpoint(path, params_template, opt_state_template)[:3]
-
-
-def checkpoint_host_state(path: Path) -> dict:
-    """The ``host`` dict of a checkpoint (``{}`` for one written before it existed):
-    ``seconds`` (float, training time so far) and ``state`` (the :class:`HostState`)."""
-    return serialization.msgpack_restore(Path(path).read_bytes()).get("host", {}) or {}
-
-
-def has_checkpoint(out: str | Path) -> bool:
-    """Whether the run folder ``out`` holds a checkpoint :func:`fit` would resume from."""
-    return (Path(out) / CHECKPOINT).exists()
 
 
 # ----------------------------------------------------------------------- the loop
@@ -243,7 +216,7 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
             exact resume. ``metrics``: scalars named by ``columns``.
         params, opt_state: the start, and the templates of the checkpoint's pytrees.
         tcfg: steps, periods and the learning-rate schedule (logged).
-        out: run folder (``checkpoint.msgpack`` + ``.json``, ``train_log.csv``,
+        out: run folder (``checkpoint/`` + ``checkpoint.json``, ``train_log.csv``,
             ``valid_log.jsonl``); created if missing.
         info: JSON-able run description written next to every checkpoint.
         validate: params -> {name: float}, run every ``validate_every`` steps and at the
@@ -258,27 +231,30 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt, step, seconds = out / CHECKPOINT, 0, 0.0
-    if ckpt.exists():
-        params, opt_state, step, host = _read_checkpoint(ckpt, params, opt_state)
+    main = is_main()  # process 0 writes the logs; every process saves (orbax is collective)
+    checkpointer, step, seconds = Checkpointer(out), 0, 0.0
+    ckpt = checkpointer.directory
+    if checkpointer.exists():
+        params, opt_state, step, host = checkpointer.restore(params, opt_state)
         seconds = float(host.get("seconds", 0.0))
         if host_state is not None and "state" in host:
             host_state.load_state_dict(host["state"])
-        _trim_logs(out, step)
-        print(f"resumed from {ckpt} at step {step}")
+        if main:
+            _trim_logs(out, step)
+            print(f"resumed from {out} at step {step}")
     lr = learning_rate(tcfg)
-    log = (out / "train_log.csv").open("a")
+    log = (out / "train_log.csv").open("a") if main else open(os.devnull, "w")
     if step == 0:
         log.write(",".join(["step", *columns, "lr", "seconds"]) + "\n")
     t0, hist = time.perf_counter() - seconds, []
-    bar = tqdm(total=tcfg.steps, initial=step, desc=desc, disable=not progress)
+    bar = tqdm(total=tcfg.steps, initial=step, desc=desc, disable=not (progress and main))
     done = (params, opt_state, step)  # the last completed step, stored in one assignment
 
     def save(p, s, k):
         host = dict(seconds=time.perf_counter() - t0)
         if host_state is not None:
             host["state"] = host_state.state_dict()
-        save_checkpoint(ckpt, p, s, k, info, host)
+        checkpointer.save(k, p, s, host, info)
 
     try:
         try:
@@ -287,9 +263,9 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
                     new_params, new_opt, metrics = update(params, opt_state, step)
                     done = (new_params, new_opt, step + 1)
                     params, opt_state, step = done
-                    hist.append([float(m) for m in metrics])
+                    hist.append([float(m) for m in to_host(list(metrics))])
                     bar.update(1)
-                    stop = sig["signum"] is not None
+                    stop = any_process(sig["signum"] is not None)  # all stop at one step
                     last = step == tcfg.steps
                     if step % tcfg.log_every == 0 or last or stop:
                         mean = np.mean(hist, axis=0)
@@ -301,9 +277,10 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
                     if step % tcfg.checkpoint_every == 0 or last or stop:
                         save(params, opt_state, step)
                     if stop:
-                        raise TrainingInterrupted(step, ckpt, sig["signum"])
-                    if validate is not None and (step % tcfg.validate_every == 0 or last):
-                        res = {k: float(v) for k, v in validate(params).items()}
+                        raise TrainingInterrupted(step, ckpt, sig["signum"] or signal.SIGTERM)
+                    if validate is not None and main and (step % tcfg.validate_every == 0
+                                                          or last):
+                        res = {k: float(v) for k, v in validate(to_host(params)).items()}
                         with (out / "valid_log.jsonl").open("a") as f:
                             f.write(json.dumps(dict(step=step, **res)) + "\n")
                         if show:
@@ -313,10 +290,12 @@ def fit(update: Update, params, opt_state, tcfg: TrainConfig, out: str | Path, i
             save(*done)
             raise TrainingInterrupted(done[2], ckpt, int(signal.SIGINT)) from None
     except TrainingInterrupted as e:
-        bar.write(str(e), file=sys.stderr)
+        if main:
+            bar.write(str(e), file=sys.stderr)
         e.reported = True  # the command line prints no second line
         raise
     finally:
         bar.close()
         log.close()
+        checkpointer.close()  # waits for the asynchronous saves
     return params, opt_state, step

@@ -2,9 +2,13 @@
 rollouts and the model folder, around the shared loop :func:`diffgns.graph.fit.fit`
 (checkpoints, exact resume, logs, SIGTERM, learning-rate schedule). Used by ``diffgns train``.
 
-Files in ``out_dir``: ``checkpoint.msgpack`` (+ ``.json``: step, configs), ``train_log.csv``
-(step, loss, lr, seconds), ``valid_log.jsonl`` (validation metrics), ``model/`` (the final
-model: ``params.msgpack`` and ``config.json``, loadable with :func:`load_model`).
+Runs in one process or several (:mod:`diffgns.distributed`; every process calls
+:func:`train` with the same arguments, process 0 writes the files).
+
+Files in ``out_dir``: ``checkpoint/`` (orbax; + ``checkpoint.json``: step, configs),
+``train_log.csv`` (step, loss, lr, seconds), ``valid_log.jsonl`` (validation metrics),
+``model/`` (the final model: ``params.msgpack`` and ``config.json``, loadable with
+:func:`load_model`).
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from diffgns.distributed import barrier, is_main, to_host
 from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
@@ -168,7 +173,8 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source)
-    (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
+    if is_main():
+        (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
     nbrs = NeighborLists()  # capacities checkpointed: exact resume
 
     def update(params, opt_state, step):
@@ -183,5 +189,8 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
         update, params, trainer.opt.init(params), tcfg, out, info, ["loss"], desc="train",
         progress=progress, validate=validate, host_state=nbrs,
         show=("runout_rel_error", "final_position_error_rel_displacement"))
-    save_model(out / "model", gns, params, dict(info, steps=step))
+    params = to_host(params)
+    if is_main():
+        save_model(out / "model", gns, params, dict(info, steps=step))
+    barrier("diffgns-train-model-written")
     return gns, params

@@ -1,21 +1,23 @@
 """GNS training step: noisy one-step loss, push-forward, data-parallel optimiser step.
 
 The loss is the MSE of the normalised acceleration over non-kinematic particles, with
-random-walk input noise and the target corrected for it. Batches are split over all visible
-devices with ``jax.sharding`` (parameters replicated, batch sharded); XLA inserts the
-gradient all-reduce. The loop around the step (checkpoints, exact resume, logs, SIGTERM,
-learning-rate schedule) is :func:`diffgns.graph.fit.fit`, shared by every trained network;
-its configuration and checkpoint helpers are re-exported here.
+random-walk input noise and the target corrected for it. Batches are split over all
+devices of the run with ``jax.sharding`` (parameters replicated, batch sharded); XLA inserts
+the gradient all-reduce. The same code runs in one process and in several
+(:mod:`diffgns.distributed`): every process draws the same global batch from (seed, step)
+and places only its own rows on its own devices. The loop around the step (checkpoints,
+exact resume, logs, SIGTERM, learning-rate schedule) is :func:`diffgns.graph.fit.fit`,
+shared by every trained network; its configuration and checkpoint helpers are re-exported.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding, PartitionSpec
 from jax_md import partition
 
+from diffgns.distributed import data_mesh, replicate, shard_batch, to_host
 from diffgns.graph.features import random_walk_noise, target_acceleration
 from diffgns.graph.fit import (  # re-exported: the training API of every network
     TrainConfig,
@@ -83,13 +85,15 @@ class Trainer:
     """Owns the jitted, device-parallel training step for one GNS and optimiser."""
 
     def __init__(self, gns: GNS, cfg: TrainConfig, devices=None):
+        """``devices``: the mesh (default every device of every process, ``jax.devices()``);
+        ``cfg.batch_size`` must be a multiple of their number."""
         self.gns, self.cfg = gns, cfg
         self.opt = make_optimizer(cfg)
-        devices = devices if devices is not None else jax.devices()
-        self.mesh = Mesh(np.array(devices), ("data",))
+        self.mesh = data_mesh(devices)
         self.replicated = NamedSharding(self.mesh, PartitionSpec())
         self.batched = NamedSharding(self.mesh, PartitionSpec("data"))
-        self._step = jax.jit(self._step_impl, donate_argnums=())
+        rep = self.replicated
+        self._step = jax.jit(self._step_impl, out_shardings=(rep, rep, rep, rep))
 
     def _batch_loss(self, params, batch, nbrs, key):
         B = batch["positions"].shape[0]
@@ -107,12 +111,16 @@ class Trainer:
         return optax.apply_updates(params, updates), new_opt, loss, over
 
     def shard(self, batch: dict) -> dict:
-        """Put a host batch on the devices, split along the batch axis."""
-        return {k: jax.device_put(np.asarray(v), self.batched) for k, v in batch.items()}
+        """Put the global host batch on the devices of the run, split along the batch axis
+        (each process places its own rows)."""
+        return shard_batch(batch, self.batched)
 
     def step(self, params, opt_state, batch, nbrs, key):
-        """One optimiser step; returns (params, opt_state, loss, overflowed). On overflow the
-        caller re-allocates ``nbrs`` and calls again with the same inputs (nothing applied)."""
+        """One optimiser step; returns (params, opt_state, loss, overflowed), all replicated
+        over the mesh. On overflow the caller re-allocates ``nbrs`` and calls again with the
+        same inputs (nothing applied)."""
+        params, opt_state, nbrs, key = replicate((params, opt_state, nbrs, key),
+                                                 self.replicated)
         return self._step(params, opt_state, self.shard(batch), nbrs, key)
 
 
@@ -189,6 +197,6 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
         nbrs[n] = trainer.gns.allocate(x)
     out, nbrs[n] = retry_on_overflow(
         lambda nb: trainer.step(params, opt_state, batch, nb, key), nbrs[n],
-        lambda out: bool(out[3]), lambda nb, _, k: trainer.gns.neighbors.reallocate(x, nb, k),
-        max_retries)
+        lambda out: bool(to_host(out[3])),
+        lambda nb, _, k: trainer.gns.neighbors.reallocate(x, nb, k), max_retries)
     return out[0], out[1], out[2]

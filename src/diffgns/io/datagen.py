@@ -8,6 +8,11 @@ A new file is built as ``<path>.partial`` and renamed to ``path`` when complete;
 carries its recipe (:func:`column_recipe`, :func:`squares_recipe`: every argument that shapes
 the trajectories), and resuming with another recipe is refused before anything is written
 (:class:`~diffgns.io.dataset.H5TrajectoryFile`).
+
+``shard`` (:class:`~diffgns.distributed.Shard`) makes only every n-th unit of work into its
+own file (:mod:`diffgns.io.shards`; merged with :func:`~diffgns.io.shards.merge_shards`):
+for squares a flow, for columns a vmap batch of friction angles of one aspect ratio (the
+batches a single process would roll out, so the merged file holds the same bytes).
 """
 from __future__ import annotations
 
@@ -20,11 +25,12 @@ import numpy as np
 from tqdm import tqdm
 
 from diffgns.interface import rollout
-from diffgns.io.dataset import DatasetWriter
+from diffgns.io.shards import shard_writer
 from diffgns.mpm import MPM
 from diffgns.mpm.solver import max_speed
 from diffgns.scene.builders import column_collapse
 from diffgns.scene.recipes import column_samples, square_scenes
+from diffgns.shard import Shard
 from diffgns.trajectory import Trajectory
 
 
@@ -64,57 +70,75 @@ def _tile(n, leaf):
     return jnp.broadcast_to(leaf, (n, *leaf.shape))
 
 
+def column_jobs(samples: list[dict], aspect_ratios, batch: int) -> list[list[int]]:
+    """The units of work of a column dataset: for each aspect ratio in turn, its sample
+    indices in chunks of ``batch`` (one vmapped rollout each)."""
+    jobs = []
+    for a in aspect_ratios:
+        ids = [i for i, s in enumerate(samples) if s["aspect_ratio"] == float(a)]
+        jobs += [ids[k:k + batch] for k in range(0, len(ids), batch)]
+    return jobs
+
+
 def generate_columns(path, aspect_ratios, friction_angles, n_frames: int, width: float = 0.1,
                      cells_across: int = 10, batch: int = 4, progress: bool = True,
-                     **scene_kw) -> Path:
-    """Write column collapses over the (aspect ratio x friction angle) grid to ``path``."""
+                     shard: Shard | None = None, **scene_kw) -> Path:
+    """Write column collapses over the (aspect ratio x friction angle) grid to ``path``
+    (shard ``shard`` of them to :func:`~diffgns.io.shards.shard_path`); returns the file."""
+    shard = shard or Shard()
     samples = column_samples(aspect_ratios, friction_angles)
     extra = dict(kind="column", width=width, cells_across=cells_across, n_frames=n_frames)
     recipe = column_recipe(aspect_ratios, friction_angles, n_frames, width, cells_across,
                            **scene_kw)
-    with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w, \
-            tqdm(total=len(samples), desc="column collapses", disable=not progress) as bar:
-        bar.update(sum(w.has(f"{i:05d}") for i in range(len(samples))))
-        for a in aspect_ratios:
-            todo = [i for i, s in enumerate(samples)
-                    if s["aspect_ratio"] == float(a) and not w.has(f"{i:05d}")]
-            if not todo:
+    jobs = shard.select(column_jobs(samples, aspect_ratios, batch))
+    mine = [i for job in jobs for i in job]
+    sims: dict[float, tuple] = {}
+    with shard_writer(path, shard, extra, recipe, dict(batch=batch)) as w, \
+            tqdm(total=len(mine), desc="column collapses", disable=not progress) as bar:
+        bar.update(sum(w.has(f"{i:05d}") for i in mine))
+        for job in jobs:
+            ids = [i for i in job if not w.has(f"{i:05d}")]
+            if not ids:
                 continue
-            scene = column_collapse(width=width, aspect_ratio=a, cells_across=cells_across,
-                                    **scene_kw)
-            sim = MPM(scene)
-            base, state = sim.params(), sim.init()
-            run = jax.jit(jax.vmap(partial(_rollout, sim, state, n_frames)))
-            for k in range(0, len(todo), batch):
-                ids = todo[k:k + batch]
-                phis = jnp.asarray([samples[i]["friction_angle"] for i in ids], base.E.dtype)
-                ps = jax.tree.map(partial(_tile, len(ids)), base)
-                ps = ps.replace(friction_angle=phis[:, None])
-                pos, vel, speed = run(ps)
-                for j, i in enumerate(ids):
-                    p = jax.tree.map(lambda leaf, j=j: leaf[j], ps)
-                    sim.check_stability(p, speed[j], pos[j])
-                    w.write(f"{i:05d}", _traj(sim, p, pos[j], vel[j]), attrs=samples[i])
-                    bar.update(1)
+            a = samples[ids[0]]["aspect_ratio"]
+            if a not in sims:
+                scene = column_collapse(width=width, aspect_ratio=a, cells_across=cells_across,
+                                        **scene_kw)
+                sim = MPM(scene)
+                sims[a] = (sim, sim.params(), jax.jit(jax.vmap(partial(
+                    _rollout, sim, sim.init(), n_frames))))
+            sim, base, run = sims[a]
+            phis = jnp.asarray([samples[i]["friction_angle"] for i in ids], base.E.dtype)
+            ps = jax.tree.map(partial(_tile, len(ids)), base)
+            ps = ps.replace(friction_angle=phis[:, None])
+            pos, vel, speed = run(ps)
+            for j, i in enumerate(ids):
+                p = jax.tree.map(lambda leaf, j=j: leaf[j], ps)
+                sim.check_stability(p, speed[j], pos[j])
+                w.write(f"{i:05d}", _traj(sim, p, pos[j], vel[j]), attrs=samples[i])
+                bar.update(1)
         w.finalize(connectivity_radius=2.0 * width / cells_across)
-    return Path(path)
+    return Path(w.final_path)
 
 
 def generate_squares(path, n: int, n_frames: int, seed: int = 0, progress: bool = True,
-                     **scene_kw) -> Path:
-    """Write ``n`` granular-square flows (random 1-2 masses and velocities) to ``path``."""
+                     shard: Shard | None = None, **scene_kw) -> Path:
+    """Write ``n`` granular-square flows (random 1-2 masses and velocities) to ``path``
+    (every ``shard.count``-th of them to :func:`~diffgns.io.shards.shard_path`); returns the
+    file."""
+    shard = shard or Shard()
     extra = dict(kind="squares", n_frames=n_frames, seed=seed)
     dx = scene_kw.get("dx", 0.02)
     recipe = squares_recipe(n_frames, seed, **scene_kw)
-    with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w:
+    with shard_writer(path, shard, extra, recipe) as w:
         scenes = square_scenes(n, seed, **scene_kw)
         for i in tqdm(range(n), desc="square flows", disable=not progress):
-            scene = next(scenes)
-            if w.has(f"{i:05d}"):
+            scene = next(scenes)  # flow i depends on (seed, i): every shard draws them all
+            if not shard.owns(i) or w.has(f"{i:05d}"):
                 continue
             sim = MPM(scene)
             traj, _ = sim.run(sim.params(), sim.init(), n_frames)
             w.write(f"{i:05d}", traj, attrs=dict(seed=seed * 100003 + i,
                                                  n_masses=len(scene.bodies)))
         w.finalize(connectivity_radius=2.0 * dx)
-    return Path(path)
+    return Path(w.final_path)

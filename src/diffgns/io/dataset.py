@@ -239,6 +239,20 @@ class H5TrajectoryFile:
         self._file.move(tmp, key)
         self._file.flush()
 
+    def copy_group(self, source: h5py.Group, key: str) -> None:
+        """Store the trajectory group ``source`` (of another file) under ``key``, byte for
+        byte (HDF5 copy of its datasets and attributes), atomically as :meth:`_store`."""
+        _require(bool(key) and not key.startswith(_TMP_PREFIX) and "/" not in key,
+                 f"invalid trajectory key {key!r}")
+        tmp = _TMP_PREFIX + key
+        if tmp in self._file:
+            del self._file[tmp]
+        self._file.copy(source, tmp)
+        if key in self._file:
+            del self._file[key]
+        self._file.move(tmp, key)
+        self._file.flush()
+
     def close(self) -> None:
         """Flush and close the file (idempotent)."""
         if self._file.id.valid:
