@@ -21,8 +21,8 @@ from diffgns.graph.features import (
     wall_distances,
 )
 from diffgns.graph.gns import GNS
-from diffgns.graph.sampling import FamilyWindowSampler
-from diffgns.trajectory import SAND, Trajectory
+from diffgns.graph.sampling import FamilyWindowSampler, pad_nodes
+from diffgns.trajectory import KINEMATIC, SAND, Trajectory
 
 BOX = [0.2, 0.1, 0.3, 0.2]
 R = 0.05
@@ -190,3 +190,40 @@ def test_family_sampler_follows_weights():
 def test_family_sampler_refuses(kw, match):
     with pytest.raises(ValueError, match=match):
         FamilyWindowSampler(_trajs([(20, 5), (20, 5)]), history=5, **kw)
+
+
+def test_padding_nodes_change_no_prediction(shipped):
+    """gns_cg16_pfn on a window padded to 64 nodes: the parked kinematic nodes have no edge
+    but their self-edge, and every real node's acceleration is the unpadded one."""
+    gns, params, _ = shipped
+    cfg = gns.config
+    h = _history(np.random.default_rng(3))  # (48, 6, 2)
+    n = h.shape[0]
+    ptype = np.full(n, SAND, np.int32)
+    mat = np.full(n, 0.6, np.float32)
+    x, p, m = pad_nodes(np.swapaxes(h, 0, 1).astype(np.float32), ptype, mat, 64, cfg.bounds,
+                        cfg.radius)
+    assert x.shape == (6, 64, 2) and (p[n:] == KINEMATIC).all() and (m[n:] == 0).all()
+    hp = np.swapaxes(x, 0, 1)
+    s, r, _ = _graph(hp[:, -1], cfg.radius)
+    assert np.all((np.asarray(s) < n) == (np.asarray(r) < n))  # no edge across
+    assert np.all(np.asarray(s)[np.asarray(s) >= n] == np.asarray(r)[np.asarray(s) >= n])
+
+    def acc(hist, pt, mt):
+        return np.asarray(gns.acceleration(params, jnp.asarray(hist, jnp.float32),
+                                           jnp.asarray(pt), jnp.asarray(mt),
+                                           *_graph(np.asarray(hist)[:, -1], cfg.radius)))
+
+    np.testing.assert_allclose(acc(hp, p, m)[:n], acc(h, ptype, mat), rtol=1e-5, atol=1e-9)
+
+
+def test_family_sampler_pads_to_few_shapes():
+    trajs = _trajs([(30, 10), (30, 13), (30, 17), (30, 33)])
+    s = FamilyWindowSampler(trajs, history=5, families=["a"] * 4, pad_to=16,
+                            bounds=((0.0, 0.8), (0.0, 0.35)), radius=0.032)
+    members, _ = s._family_groups["a"]
+    assert sorted(len(m) for m in members) == [1, 1, 2]  # 10, 13 -> 16; 17 -> 32; 33 -> 48
+    shapes = {s.sample(np.random.default_rng(i), 2)["positions"].shape[2] for i in range(40)}
+    assert shapes == {16, 32, 48}
+    with pytest.raises(ValueError, match="needs bounds"):
+        FamilyWindowSampler(trajs, history=5, families=["a"] * 4, pad_to=16)

@@ -107,9 +107,15 @@ class WindowSampler:
         pos, ptype, mat = [], [], []
         for _ in range(batch):
             t = self.trajs[members[rng.integers(len(members))]]
-            s = rng.integers(0, t.n_frames - self.length + 1)
-            pos.append(np.asarray(t.positions[s:s + self.length]))
-            ptype.append(np.asarray(t.particle_type))
-            mat.append(np.asarray(t.material))
+            x, p, m = self.window(t, int(rng.integers(0, t.n_frames - self.length + 1)))
+            pos.append(x)
+            ptype.append(p)
+            mat.append(m)
         return dict(positions=np.stack(pos), particle_type=np.stack(ptype),
                     material=np.stack(mat))
+
+    def window(self, t: Trajectory, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The window of ``t`` from frame ``start``: positions (L, N, 2), particle_type
+        (N,), material (N,)."""
+        return (np.asarray(t.positions[start:start + self.length]),
+                np.asarray(t.particle_type), np.asarray(t.material))

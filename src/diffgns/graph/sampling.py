@@ -4,6 +4,14 @@ in proportion to their windows, a family with many long trajectories would crowd
 others. :class:`FamilyWindowSampler` draws the family of each batch with the given weights,
 then a node-count group of that family in proportion to its windows, then windows, as
 :class:`~diffgns.graph.data.WindowSampler` does.
+
+Random scenes have many node counts (~100 in 200 trajectories of the granular data), and
+every count is one more compilation of the training step. With ``pad_to = k`` the sampler
+groups trajectories by their node count rounded up to a multiple of ``k`` and pads each
+window with :func:`pad_nodes`: kinematic nodes (type 3: masked from the loss, no training
+noise) parked in a row ``2 R`` below the floor, ``1.5 R`` apart, so they have no edge to any
+particle in the box nor to each other, and the loss and every real node's prediction are
+those of the unpadded window.
 """
 from __future__ import annotations
 
@@ -12,8 +20,39 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from diffgns.graph.data import WindowSampler
+from diffgns.trajectory import KINEMATIC
 
-__all__ = ["FamilyWindowSampler"]
+__all__ = ["FamilyWindowSampler", "pad_nodes"]
+
+
+def pad_nodes(positions: np.ndarray, particle_type: np.ndarray, material: np.ndarray,
+              n_total: int, bounds, radius: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pad one window to ``n_total`` nodes with parked kinematic nodes.
+
+    Args:
+        positions: (L, N, 2) window, m; particle_type, material: (N,).
+        n_total: node count after padding (>= N).
+        bounds: ``((xmin, xmax), (ymin, ymax))`` of the box the real nodes are in, m.
+        radius: connectivity radius R, m.
+
+    Returns:
+        positions (L, n_total, 2) with the padding nodes at ``(xmin + 1.5 R k, ymin - 2 R)``
+        in every frame, particle_type (n_total,) with KINEMATIC padding, material (n_total,)
+        with 0 padding. The parked row lies outside the box: fine for the all-pairs
+        neighbour list (up to 1,024 nodes, every model here); a cell list sized from the
+        box would need the box widened.
+    """
+    n = positions.shape[1]
+    p = n_total - n
+    if p < 0:
+        raise ValueError(f"pad_nodes: n_total = {n_total} is below the window's {n} nodes")
+    (x0, _), (y0, _) = bounds
+    park = np.stack([x0 + 1.5 * radius * np.arange(p), np.full(p, y0 - 2.0 * radius)], -1)
+    park = np.broadcast_to(park.astype(positions.dtype), (positions.shape[0], p, 2))
+    return (np.concatenate([positions, park], 1),
+            np.concatenate([particle_type, np.full(p, KINEMATIC, particle_type.dtype)]),
+            np.concatenate([material, np.zeros(p, material.dtype)]))
 
 
 @dataclass
@@ -26,13 +65,26 @@ class FamilyWindowSampler(WindowSampler):
         weights: family -> weight >= 0 (normalised here); default: equal weights for the
             families present. A family without trajectories or a weight for a family not
             present raises ValueError naming it.
+        pad_to: group node counts rounded up to a multiple of this and pad the windows
+            (:func:`pad_nodes`); 1 = no padding.
+        bounds, radius: the box (m) and connectivity radius (m) of :func:`pad_nodes`
+            (needed when ``pad_to > 1``).
     """
 
     families: list[str] = field(default_factory=list)
     weights: dict[str, float] | None = None
+    pad_to: int = 1
+    bounds: tuple | None = None
+    radius: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
+        if not (isinstance(self.pad_to, int) and self.pad_to >= 1):
+            raise ValueError(f"FamilyWindowSampler.pad_to = {self.pad_to!r} must be an "
+                             "integer >= 1 (nodes)")
+        if self.pad_to > 1 and (self.bounds is None or not self.radius > 0):
+            raise ValueError("FamilyWindowSampler.pad_to > 1 needs bounds (the box, m) and "
+                             "radius > 0 (m) to park the padding nodes")
         if len(self.families) != len(self.trajs):
             raise ValueError(f"FamilyWindowSampler.families has {len(self.families)} names for "
                              f"{len(self.trajs)} trajectories; give one family per trajectory")
@@ -52,11 +104,22 @@ class FamilyWindowSampler(WindowSampler):
             groups: dict[int, list[int]] = {}
             for i, (t, g) in enumerate(zip(self.trajs, self.families)):
                 if g == f:
-                    groups.setdefault(t.n_particles, []).append(i)
+                    groups.setdefault(self.padded(t.n_particles), []).append(i)
             members = list(groups.values())
             sizes = np.array([sum(self.trajs[i].n_frames - self.length + 1 for i in m)
                               for m in members], float)
             self._family_groups[f] = (members, sizes / sizes.sum())
+
+    def padded(self, n: int) -> int:
+        """Node count after padding: ``n`` rounded up to a multiple of ``pad_to``."""
+        return -(-n // self.pad_to) * self.pad_to
+
+    def window(self, t, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`WindowSampler.window`, padded to :meth:`padded` nodes."""
+        x, p, m = super().window(t, start)
+        if self.pad_to == 1:
+            return x, p, m
+        return pad_nodes(x, p, m, self.padded(t.n_particles), self.bounds, self.radius)
 
     def family_probabilities(self) -> dict[str, float]:
         """Family -> probability that a batch is drawn from it."""
