@@ -174,6 +174,12 @@ def test_particle_map_keeps_every_cluster_inside_the_box():
             assert 0.0 < s < 1.0 and x[0, m].min() < 1e-4  # just enough to stay inside
         else:
             assert s == pytest.approx(1.0, abs=1e-6)  # fits: the affine map unchanged
+    # with a margin (half a particle spacing in the hybrid) nobody gets closer to a wall than
+    # the margin, or than it already was
+    near, _ = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry", lo,
+                                   hi, margin=0.002)
+    assert np.asarray(near.x)[0].min() >= min(0.002, x0[0].min()) - 1e-9
+    np.testing.assert_allclose(node_means(near.x, cluster, counts), x_node, atol=1e-7)
     # a rigid move of 2 cm to the left: the left clusters' wall-side particles would cross
     disp = jnp.asarray([[-0.02, 0.0]] * 4)
     new, clamp = particles_from_nodes(st, cluster, x_node, disp, disp / 0.005, gu * 0, gu * 0,

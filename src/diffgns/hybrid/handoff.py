@@ -31,8 +31,11 @@ in [0, 1] that keeps all the cluster's particles inside (falling back towards th
 only as far as needed); where even the rigid offsets would cross a wall (a node close to a
 wall), the cluster's offsets are then contracted towards the node by the largest factor in
 [0, 1] that fits. Both factors scale offsets about the node, so the cluster mean stays the
-node. A clamp remains only as a safety net for a node outside the box, and it is counted
-(:mod:`diffgns.clamp`).
+node. "Inside" is the box inset by half the MPM particle spacing (where the MPM's fill puts
+the first particles; a particle already closer is not pushed further): with the box itself
+as the limit, the stretched clusters still parked their wall-side particles 1 micrometre
+from the walls (11-15 of them on that case), unclamped but on the wall. A clamp remains only
+as a safety net for a node outside the box, and it is counted (:mod:`diffgns.clamp`).
 """
 from __future__ import annotations
 
@@ -78,37 +81,51 @@ def lsq_gradient(u: jax.Array, x: jax.Array, senders, receivers, mask) -> jax.Ar
     return jnp.where(ok[:, None, None], G, 0.0)
 
 
-def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi):
+def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
+                margin: float = 0.0):
     """Per-cluster limit of a particle map so that every particle stays inside the box.
 
     The map puts particle ``p`` of cluster ``k`` at ``x_node[k] + offset[p] + s_k step[p]``
     (``offset``: the rigid offset from the node, ``step``: the affine term). This returns the
     positions with the largest ``s_k`` in [0, 1] that keeps all of cluster ``k``'s particles
-    inside ``[lo, hi]`` (the affine term falls back towards rigid only as far as needed), and
-    where even the rigid offsets would cross a wall, the cluster's offsets are then scaled by
-    the largest ``lam_k`` in [0, 1] that keeps them inside (the cluster contracts towards its
-    node, which stays its mean). A cluster that fits is mapped unchanged (s = lam = 1).
+    inside their bounds (the affine term falls back towards rigid only as far as needed), and
+    where even the rigid offsets would leave them, the cluster's offsets are then scaled by
+    the largest ``lam_k`` in [0, 1] that fits (the cluster contracts towards its node, which
+    stays its mean). A cluster that fits is mapped unchanged (s = lam = 1).
+
+    A particle's bounds are the box inset by ``margin`` (a material point's centre stays half
+    a particle spacing from a wall, as in the MPM's initial fill), widened to include where
+    the particle already was (``x_old``) and its node, so the map never pushes a particle
+    further into the margin than it is, and a node inside the margin stays feasible. The
+    bounds are never closer to a wall than 1e-6 of the box size, so rounding can never put
+    a limited particle outside.
 
     Args:
         x_node: (2, N) new position of each particle's node (inside the box), m.
         offset, step: (2, N) rigid offset and affine term of each particle, m.
         cluster: (N,) node index; n_nodes: M.
-        lo, hi: (2,) box, m. The limit uses the box inset by 1e-6 of its size, so rounding
-            can never put a limited particle outside.
+        lo, hi: (2,) box, m.
+        x_old: (2, N) particle positions before the map, m (None: not used).
+        margin: inset of the box, m (>= 0).
 
     Returns:
         (2, N) positions, m.
     """
     eps = 1e-6 * jnp.max(hi - lo)
-    lo_in, hi_in = (lo + eps)[:, None], (hi - eps)[:, None]
+    lo_p = jnp.broadcast_to((lo + margin)[:, None], x_node.shape)
+    hi_p = jnp.broadcast_to((hi - margin)[:, None], x_node.shape)
+    for y in (x_node,) if x_old is None else (x_node, x_old):
+        lo_p, hi_p = jnp.minimum(lo_p, y), jnp.maximum(hi_p, y)
+    lo_p = jax.lax.stop_gradient(jnp.maximum(lo_p, (lo + eps)[:, None]))
+    hi_p = jax.lax.stop_gradient(jnp.minimum(hi_p, (hi - eps)[:, None]))
 
     def largest(base, d):
-        """(N,) largest t in [0, 1] with lo <= base + t d <= hi on every axis (0 where base
-        itself is outside)."""
-        room = jnp.where(d > 0, hi_in - base, lo_in - base)
+        """(N,) largest t in [0, 1] with lo_p <= base + t d <= hi_p on every axis (0 where
+        base itself is outside)."""
+        room = jnp.where(d > 0, hi_p - base, lo_p - base)
         moving = d != 0
         t = jnp.where(moving, room / jnp.where(moving, d, 1.0), jnp.inf)
-        inside = jnp.all((base >= lo_in) & (base <= hi_in), axis=0)
+        inside = jnp.all((base >= lo_p) & (base <= hi_p), axis=0)
         return jnp.where(inside, jnp.clip(jnp.min(t, axis=0), 0.0, 1.0), 0.0)
 
     rigid = x_node + offset
@@ -119,7 +136,7 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi):
 
 
 def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,
-                         lo, hi, particle_map: str = "affine"):
+                         lo, hi, particle_map: str = "affine", margin: float = 0.0):
     """MPM state after a GNS frame that moved node ``k`` from ``x_node[k]`` by ``disp[k]``.
 
     Args:
@@ -131,6 +148,8 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
             gradient over the frame.
         handoff: one of :data:`HANDOFFS`. lo, hi: (2,) domain bounds, m.
         particle_map: one of :data:`PARTICLE_MAPS`.
+        margin: how far from the walls (m) the map keeps particles that were not closer
+            already (:func:`keep_inside`; the hybrid uses half the MPM particle spacing).
 
     Returns:
         ``(state, ClampCount)``: the new particle state, every particle inside the box by
@@ -144,7 +163,7 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     node_new = (x_node + disp)[cluster].T  # (2, N)
     r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
     step = jnp.einsum("abn,bn->an", Gu, r) if particle_map == "affine" else jnp.zeros_like(r)
-    x = keep_inside(node_new, r, step, cluster, x_node.shape[0], lo, hi)
+    x = keep_inside(node_new, r, step, cluster, x_node.shape[0], lo, hi, state.x, margin)
     v = vel[cluster].T
     if particle_map == "affine":
         v = v + jnp.einsum("abn,bn->an", Gv, x - node_new)
