@@ -233,7 +233,7 @@ class _Layout:
         """Reflect everything about the box's vertical mid-line (velocities too)."""
         self.bodies = [(self.nx - i - w, j, w, h) for i, j, w, h in self.bodies]
         self.obstacles = [(self.nx - i - w, j, w, h) for i, j, w, h in self.obstacles]
-        self.velocities = [(-vx, vy) for vx, vy in self.velocities]
+        self.velocities = [(0.0 - vx, vy) for vx, vy in self.velocities]  # no -0.0
         self.occ = self.occ[::-1].copy()
 
     def metres(self, rect) -> list[float]:
