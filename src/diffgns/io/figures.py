@@ -259,7 +259,8 @@ def write_vtk(
     """Write frames of ``traj`` as VTK unstructured-grid point clouds.
 
     Frame ``t`` (for t = 0, every, 2 every, ...) goes to ``<out_dir>/<prefix>_<t:05d>.vtu`` with
-    the points (z = 0, m) and point data ``velocity`` (3-vectors, z = 0, m/s), ``speed`` (m/s),
+    the points (m; z = 0 for a 2D trajectory) and point data ``velocity`` (3-vectors, m/s;
+    z = 0 in 2D), ``speed`` (m/s),
     ``particle_type`` and ``material``. ``<out_dir>/<prefix>.pvd`` collects them with their
     times in s.
 
@@ -279,15 +280,17 @@ def write_vtk(
         vel = np.asarray(traj.velocities[t])
         x, y = np.ascontiguousarray(pos[:, 0]), np.ascontiguousarray(pos[:, 1])
         vx, vy = np.ascontiguousarray(vel[:, 0]), np.ascontiguousarray(vel[:, 1])
-        vz = np.zeros_like(vx)
+        three = pos.shape[1] == 3  # 3D trajectories keep their z; 2D ones lie in z = 0
+        z = np.ascontiguousarray(pos[:, 2]) if three else np.zeros_like(x)
+        vz = np.ascontiguousarray(vel[:, 2]) if three else np.zeros_like(vx)
         data = {
             "velocity": (vx, vy, vz),
-            "speed": np.ascontiguousarray(np.hypot(vx, vy)),
+            "speed": np.ascontiguousarray(np.sqrt(vx * vx + vy * vy + vz * vz) if three
+                                          else np.hypot(vx, vy)),
             "particle_type": ptype,
             "material": material,
         }
-        written = pointsToVTK(str(out_dir / f"{prefix}_{t:05d}"), x, y, np.zeros_like(x),
-                              data=data)
+        written = pointsToVTK(str(out_dir / f"{prefix}_{t:05d}"), x, y, z, data=data)
         paths.append(Path(written))
         group.addFile(filepath=written, sim_time=t * float(traj.frame_dt))
     group.save()

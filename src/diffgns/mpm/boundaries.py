@@ -1,9 +1,12 @@
-"""Grid boundary conditions: box walls and static rigid obstacles.
+"""Grid boundary conditions: box walls and static rigid obstacles, 2D or 3D.
 
-Conditions act on grid node velocities (2, nx, ny) after the gravity update. A node
+Conditions act on grid node velocities (d, nx, ny[, nz]) after the gravity update. A node
 moving *into* a boundary (v . n < 0, n the outward normal of the boundary surface)
 loses its normal velocity; a frictional boundary also reduces the tangential speed by
 mu |v_n| (Coulomb), never reversing it; a sticky boundary stops the node.
+
+Walls are ordered as :data:`diffgns.scene.elements.WALL_NAMES_3D`: left/right (x),
+bottom/top (y), back/front (z, 3D only).
 """
 from __future__ import annotations
 
@@ -14,25 +17,26 @@ import numpy as np
 from diffgns.mpm import linalg as la
 
 
-def _normal_bc(vx, vy, nx, ny, kind: str, mu=None):
-    """Apply a boundary condition with outward normal (nx, ny) to velocities vx, vy."""
+def _normal_bc(v, n, kind: str, mu=None):
+    """Apply a boundary condition with outward normal ``n`` (d floats or (K,) arrays) to
+    velocity components ``v`` (d arrays); returns the d new components."""
     if kind == "sticky":
-        return jnp.zeros_like(vx), jnp.zeros_like(vy)
-    vn = vx * nx + vy * ny
+        return tuple(jnp.zeros_like(c) for c in v)
+    vn = la._sum([c * nc for c, nc in zip(v, n)])
     into = vn < 0
-    tx, ty = vx - vn * nx, vy - vn * ny
+    t = tuple(c - vn * nc for c, nc in zip(v, n))
     if kind == "slip":
-        return jnp.where(into, tx, vx), jnp.where(into, ty, vy)
-    tn = la.safe_norm(jnp.stack([tx, ty]))
+        return tuple(jnp.where(into, tc, c) for tc, c in zip(t, v))
+    tn = la.safe_norm(jnp.stack(t))
     scale = jnp.maximum(0.0, 1.0 + mu * vn / tn)  # vn < 0: 1 - mu |vn| / |vt|
-    return jnp.where(into, tx * scale, vx), jnp.where(into, ty * scale, vy)
+    return tuple(jnp.where(into, tc * scale, c) for tc, c in zip(t, v))
 
 
 def _named_condition(name: str, kind: str):
     """A jitted boundary condition named ``name``: it appears as ``name=...`` in the jaxpr, so
     tests can check which conditions a scene traces."""
-    def condition(vx, vy, nx, ny, mu=None):
-        return _normal_bc(vx, vy, nx, ny, kind, mu)
+    def condition(v, n, mu=None):
+        return _normal_bc(v, n, kind, mu)
 
     condition.__name__ = condition.__qualname__ = name
     return jax.jit(condition)
@@ -43,65 +47,79 @@ OBSTACLE = {k: _named_condition(f"obstacle_{k}", k) for k in ("sticky", "slip", 
 wall_sticky, wall_slip, wall_friction = WALL["sticky"], WALL["slip"], WALL["friction"]
 
 
-def apply_walls(gv, walls, wall_mu, padding: int, n_cells: tuple[int, int]):
-    """Apply the four box walls.
+def wall_slabs(padding: int, n_cells: tuple[int, ...]) -> list[tuple[tuple, tuple]]:
+    """(index expression into (d, *grid), outward normal of the wall face) of each wall, in
+    wall order: for each axis the low then the high side. The low wall holds the nodes
+    ``[:p + 1]`` along its axis, the high wall ``[p + n:]``."""
+    d = len(n_cells)
+    out = []
+    for a, n in enumerate(n_cells):
+        for side, sl in ((1.0, slice(None, padding + 1)), (-1.0, slice(padding + n, None))):
+            idx = [slice(None)] * (d + 1)
+            idx[a + 1] = sl
+            normal = tuple(side if b == a else 0.0 for b in range(d))
+            out.append((tuple(idx), normal))
+    return out
+
+
+def apply_walls(gv, walls, wall_mu, padding: int, n_cells: tuple[int, ...]):
+    """Apply the 2d box walls.
 
     Args:
-        gv: (2, nx, ny) grid velocities, m/s.
-        walls: static Walls (kinds).
-        wall_mu: (4,) friction coefficients (left, right, bottom, top); leaves.
+        gv: (d, nx, ny[, nz]) grid velocities, m/s.
+        walls: static Wall kinds, 2d of them in wall order.
+        wall_mu: (2d,) friction coefficients in wall order; leaves.
         padding: grid cells outside the domain.
-        n_cells: domain cells (cx, cy).
+        n_cells: domain cells (cx, cy[, cz]).
     """
-    p = padding
-    cx, cy = n_cells
-    slabs = (
-        (np.s_[:, : p + 1, :], (1.0, 0.0)),
-        (np.s_[:, p + cx:, :], (-1.0, 0.0)),
-        (np.s_[:, :, : p + 1], (0.0, 1.0)),
-        (np.s_[:, :, p + cy:], (0.0, -1.0)),
-    )
-    for k, (wall, (sl, (nx, ny))) in enumerate(zip(walls, slabs)):
-        vx, vy = gv[sl][0], gv[sl][1]
+    d = gv.shape[0]
+    for k, (wall, (sl, normal)) in enumerate(zip(walls, wall_slabs(padding, n_cells))):
+        part = gv[sl]
         mu = wall_mu[k] if wall.kind == "friction" else None
-        vx, vy = WALL[wall.kind](vx, vy, nx, ny, mu)
-        gv = gv.at[sl].set(jnp.stack([vx, vy]))
+        v = WALL[wall.kind](tuple(part[c] for c in range(d)), normal, mu)
+        gv = gv.at[sl].set(jnp.stack(v))
     return gv
 
 
 def obstacle_nodes(obstacles, grid_shape, origin, dx):
     """Static description of the grid nodes inside obstacles.
 
-    Returns a dict kind -> (flat node indices (K,), normals (2, K), obstacle index (K,)),
+    Returns a dict kind -> (flat node indices (K,), normals (d, K), obstacle index (K,)),
     with the outward normal of the nearest face of each node's obstacle.
     """
-    nx, ny = grid_shape
-    I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
-    X, Y = origin[0] + I * dx, origin[1] + J * dx
+    d = len(grid_shape)
+    grids = np.meshgrid(*[np.arange(n) for n in grid_shape], indexing="ij")
+    X = [origin[a] + grids[a] * dx for a in range(d)]
     out: dict[str, list] = {}
     taken = np.zeros(grid_shape, bool)
     for k, o in enumerate(obstacles):
+        lo, hi = o.lower, o.upper
         tol = 1e-9 * dx
-        inside = (X >= o.x0 - tol) & (X <= o.x1 + tol) & (Y >= o.y0 - tol) & (Y <= o.y1 + tol)
+        inside = np.ones(grid_shape, bool)
+        for a in range(d):
+            inside &= (X[a] >= lo[a] - tol) & (X[a] <= hi[a] + tol)
         inside &= ~taken
         taken |= inside
-        d = np.stack([X - o.x0, o.x1 - X, Y - o.y0, o.y1 - Y])  # left, right, bottom, top
-        face = np.argmin(d, axis=0)
-        normals = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])[face]
+        dist = np.stack([q for a in range(d) for q in (X[a] - lo[a], hi[a] - X[a])])
+        face = np.argmin(dist, axis=0)  # left, right, bottom, top[, back, front]
+        table = np.array([[(-1.0 if f % 2 == 0 else 1.0) if f // 2 == a else 0.0
+                           for a in range(d)] for f in range(2 * d)])
+        normals = table[face]
         flat = np.flatnonzero(inside.ravel())
         entry = out.setdefault(o.surface.kind, [[], [], []])
         entry[0].append(flat)
-        entry[1].append(normals.reshape(-1, 2)[flat].T)
+        entry[1].append(normals.reshape(-1, d)[flat].T)
         entry[2].append(np.full(len(flat), k, np.int32))
     return {kind: (np.concatenate(e[0]), np.concatenate(e[1], 1), np.concatenate(e[2]))
             for kind, e in out.items()}
 
 
 def apply_obstacles(gv, nodes, obstacle_mu):
-    """Apply obstacle conditions to flat grid velocities (2, n_nodes)."""
+    """Apply obstacle conditions to flat grid velocities (d, n_nodes)."""
+    d = gv.shape[0]
     for kind, (idx, normals, owner) in nodes.items():
-        vx, vy = gv[0, idx], gv[1, idx]
+        v = tuple(gv[c, idx] for c in range(d))
         mu = obstacle_mu[owner] if kind == "friction" else None
-        vx, vy = OBSTACLE[kind](vx, vy, normals[0], normals[1], mu)
-        gv = gv.at[:, idx].set(jnp.stack([vx, vy]))
+        v = OBSTACLE[kind](v, tuple(normals[c] for c in range(d)), mu)
+        gv = gv.at[:, idx].set(jnp.stack(v))
     return gv

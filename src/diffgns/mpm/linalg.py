@@ -1,7 +1,10 @@
-"""Batched 2x2 linear algebra with gradients that stay finite.
+"""Batched small-matrix linear algebra (2x2 and 3x3) with gradients that stay finite.
 
-Matrices are stored component-major, shape (2, 2, N): ``A[i, j]`` is an (N,) array.
-This layout keeps every operation a fused elementwise kernel on CPU.
+Matrices are stored component-major, shape (d, d, N) with d = 2 or 3: ``A[i, j]`` is an (N,)
+array. This layout keeps every operation a fused elementwise kernel on CPU. The 2D
+expressions are written so that a 2D scene computes exactly (bitwise) what the 2D-only code
+computed; 3D adds the 3x3 determinant and a 3x3 SVD (:func:`svd3`) whose derivative stays
+finite at repeated singular values.
 """
 from __future__ import annotations
 
@@ -12,6 +15,11 @@ import jax.numpy as jnp
 def tiny(dtype) -> float:
     """A squared-length floor that is representable and harmless in ``dtype``."""
     return 1e-30 if jnp.finfo(dtype).bits <= 32 else 1e-60
+
+
+def gap(dtype) -> float:
+    """Floor of |s_i^2 - s_j^2| in the SVD derivative (clamped near repeated values)."""
+    return 1e-6 if jnp.finfo(dtype).bits <= 32 else 1e-12
 
 
 def safe_norm(x: jax.Array, axis: int = 0) -> jax.Array:
@@ -26,46 +34,71 @@ def safe_div(num: jax.Array, den: jax.Array, fallback: float = 0.0) -> jax.Array
     return jnp.where(ok, num / jnp.where(ok, den, 1), fallback)
 
 
+def _sum(terms):
+    """Left-to-right sum of a sequence of arrays (the summation order of the 2D code)."""
+    out = terms[0]
+    for t in terms[1:]:
+        out = out + t
+    return out
+
+
 def matmul(A: jax.Array, B: jax.Array) -> jax.Array:
-    """(2,2,N) @ (2,2,N) -> (2,2,N)."""
-    return jnp.stack([
-        jnp.stack([A[0, 0] * B[0, 0] + A[0, 1] * B[1, 0], A[0, 0] * B[0, 1] + A[0, 1] * B[1, 1]]),
-        jnp.stack([A[1, 0] * B[0, 0] + A[1, 1] * B[1, 0], A[1, 0] * B[0, 1] + A[1, 1] * B[1, 1]]),
-    ])
+    """(d,d,N) @ (d,d,N) -> (d,d,N)."""
+    d = A.shape[0]
+    return jnp.stack([jnp.stack([_sum([A[i, k] * B[k, j] for k in range(d)])
+                                 for j in range(d)]) for i in range(d)])
 
 
 def transpose(A: jax.Array) -> jax.Array:
-    return jnp.stack([jnp.stack([A[0, 0], A[1, 0]]), jnp.stack([A[0, 1], A[1, 1]])])
+    """(d,d,N) -> (d,d,N) transposed."""
+    d = A.shape[0]
+    return jnp.stack([jnp.stack([A[j, i] for j in range(d)]) for i in range(d)])
+
+
+def trace(A: jax.Array) -> jax.Array:
+    """(N,) trace of (d,d,N)."""
+    return _sum([A[i, i] for i in range(A.shape[0])])
 
 
 def det(A: jax.Array) -> jax.Array:
-    return A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    """(N,) determinant of (d,d,N), d = 2 or 3."""
+    if A.shape[0] == 2:
+        return A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    return (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+            - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+            + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
 
 
 def rotation(c: jax.Array, s: jax.Array) -> jax.Array:
-    """Rotation matrices [[c, -s], [s, c]] from cosines and sines (N,)."""
+    """2D rotation matrices [[c, -s], [s, c]] from cosines and sines (N,)."""
     return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
 
 
-def diag(d0: jax.Array, d1: jax.Array) -> jax.Array:
-    z = jnp.zeros_like(d0)
-    return jnp.stack([jnp.stack([d0, z]), jnp.stack([z, d1])])
+def diag(*ds: jax.Array) -> jax.Array:
+    """(d,d,N) diagonal matrices from d diagonals (N,)."""
+    z = jnp.zeros_like(ds[0])
+    n = len(ds)
+    return jnp.stack([jnp.stack([ds[i] if i == j else z for j in range(n)]) for i in range(n)])
 
 
-def eye(n: int, dtype) -> jax.Array:
-    o, z = jnp.ones(n, dtype), jnp.zeros(n, dtype)
-    return jnp.stack([jnp.stack([o, z]), jnp.stack([z, o])])
+def eye(n: int, dtype, d: int = 2) -> jax.Array:
+    """(d,d,n) identity matrices."""
+    return diag(*([jnp.ones(n, dtype)] * d))
 
 
 def polar_rotation(F: jax.Array) -> jax.Array:
-    """Rotation R of the polar decomposition F = R S (closed form for det F > 0).
+    """Rotation R of the polar decomposition F = R S, (d,d,N).
 
-    R is the rotation by atan2(F10 - F01, F00 + F11), computed from the vector (x, y) =
-    (F00 + F11, F10 - F01) normalised by r = sqrt(x^2 + y^2 + tiny) > 0, so the value and
-    the gradient are finite everywhere. For det F > 0, x^2 + y^2 = |F|^2 + 2 det F > 0, so
-    ``tiny`` only guards the gradient; (x, y) = 0 needs det F <= 0 (outside the domain),
-    where R is the zero matrix.
+    2D: closed form (for det F > 0). R is the rotation by atan2(F10 - F01, F00 + F11),
+    computed from the vector (x, y) = (F00 + F11, F10 - F01) normalised by
+    r = sqrt(x^2 + y^2 + tiny) > 0, so the value and the gradient are finite everywhere. For
+    det F > 0, x^2 + y^2 = |F|^2 + 2 det F > 0, so ``tiny`` only guards the gradient;
+    (x, y) = 0 needs det F <= 0 (outside the domain), where R is the zero matrix.
+    3D: R = U V^T from :func:`svd3` (rotations U, V), finite derivative everywhere.
     """
+    if F.shape[0] == 3:
+        U, _, V = svd3(F)
+        return matmul(U, transpose(V))
     x = F[0, 0] + F[1, 1]
     y = F[1, 0] - F[0, 1]
     r = jnp.sqrt(x * x + y * y + tiny(F.dtype))
@@ -89,7 +122,7 @@ def _svd_fwd_closed(F: jax.Array):
 
 
 @jax.custom_jvp
-def svd(F: jax.Array):
+def svd2(F: jax.Array):
     """2x2 SVD F = U diag(s) V^T of (2,2,N) matrices, closed form.
 
     U and V are rotations; s[0] >= |s[1]| and s[1] < 0 when det F < 0.
@@ -100,15 +133,15 @@ def svd(F: jax.Array):
     return _svd_fwd_closed(F)
 
 
-@svd.defjvp
-def _svd_jvp(primals, tangents):
+@svd2.defjvp
+def _svd2_jvp(primals, tangents):
     (F,), (dF,) = primals, tangents
     U, s, V = _svd_fwd_closed(F)
     dP = matmul(matmul(transpose(U), dF), V)
     ds = jnp.stack([dP[0, 0], dP[1, 1]])
     s0, s1 = s[0], s[1]
     den = s1 * s1 - s0 * s0  # for (i, j) = (0, 1)
-    eps = 1e-6 if jnp.finfo(F.dtype).bits <= 32 else 1e-12
+    eps = gap(F.dtype)
     den = jnp.where(jnp.abs(den) < eps, jnp.where(den < 0, -eps, eps), den)
     wu = (s1 * dP[0, 1] + s0 * dP[1, 0]) / den
     wv = (s0 * dP[0, 1] + s1 * dP[1, 0]) / den
@@ -116,3 +149,61 @@ def _svd_jvp(primals, tangents):
     Wu = jnp.stack([jnp.stack([z, wu]), jnp.stack([-wu, z])])
     Wv = jnp.stack([jnp.stack([z, wv]), jnp.stack([-wv, z])])
     return (U, s, V), (matmul(U, Wu), ds, matmul(V, Wv))
+
+
+def _svd3_fwd(F: jax.Array):
+    """Rotation-preserving 3x3 SVD of (3,3,N): U, V proper rotations (det +1), s (3,N)
+    descending in magnitude with s[2] < 0 when det F < 0 (LAPACK, then signs fixed)."""
+    M = jnp.moveaxis(F, -1, 0)  # (N, 3, 3)
+    u, s, vt = jnp.linalg.svd(M)
+    du = jnp.sign(jnp.linalg.det(u))
+    dv = jnp.sign(jnp.linalg.det(vt))
+    flip = jnp.stack([jnp.ones_like(du), jnp.ones_like(du), du], -1)  # (N, 3)
+    flipv = jnp.stack([jnp.ones_like(dv), jnp.ones_like(dv), dv], -1)
+    u = u * flip[:, None, :]
+    vt = vt * flipv[:, :, None]
+    s = s * flip * flipv  # the last singular value takes both signs
+    return jnp.moveaxis(u, 0, -1), s.T, jnp.moveaxis(jnp.swapaxes(vt, 1, 2), 0, -1)
+
+
+@jax.custom_jvp
+def svd3(F: jax.Array):
+    """3x3 SVD F = U diag(s) V^T of (3,3,N) matrices; U, V rotations.
+
+    The JVP is the analytic one, dP = U^T dF V, ds_i = dP_ii and dU = U W_U, dV = V W_V with
+    W_U[i,j] = (s_j dP_ij + s_i dP_ji)/(s_j^2 - s_i^2), W_V[i,j] = (s_i dP_ij + s_j dP_ji)/
+    (s_j^2 - s_i^2), the denominators clamped to +-:func:`gap` so that it stays finite at
+    repeated singular values (F = I, uniaxial F = diag(a, 1, 1)). Where the loss is an
+    isotropic function of F (Hencky stress, F - R), the clamped terms multiply
+    differences of equal principal values and the derivative is exact.
+    """
+    return _svd3_fwd(F)
+
+
+@svd3.defjvp
+def _svd3_jvp(primals, tangents):
+    (F,), (dF,) = primals, tangents
+    U, s, V = _svd3_fwd(F)
+    dP = matmul(matmul(transpose(U), dF), V)
+    eps = gap(F.dtype)
+    z = jnp.zeros_like(s[0])
+    Wu = [[z] * 3 for _ in range(3)]
+    Wv = [[z] * 3 for _ in range(3)]
+    for i in range(3):
+        for j in range(i + 1, 3):
+            den = s[j] * s[j] - s[i] * s[i]
+            den = jnp.where(jnp.abs(den) < eps, jnp.where(den < 0, -eps, eps), den)
+            wu = (s[j] * dP[i, j] + s[i] * dP[j, i]) / den
+            wv = (s[i] * dP[i, j] + s[j] * dP[j, i]) / den
+            Wu[i][j], Wu[j][i] = wu, -wu
+            Wv[i][j], Wv[j][i] = wv, -wv
+    Wu_a = jnp.stack([jnp.stack(r) for r in Wu])
+    Wv_a = jnp.stack([jnp.stack(r) for r in Wv])
+    ds = jnp.stack([dP[0, 0], dP[1, 1], dP[2, 2]])
+    return (U, s, V), (matmul(U, Wu_a), ds, matmul(V, Wv_a))
+
+
+def svd(F: jax.Array):
+    """SVD F = U diag(s) V^T of (d,d,N) matrices, d = 2 (:func:`svd2`) or 3 (:func:`svd3`):
+    rotations U, V and signed singular values s (d, N), finite derivatives everywhere."""
+    return svd2(F) if F.shape[0] == 2 else svd3(F)

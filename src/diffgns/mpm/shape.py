@@ -1,16 +1,25 @@
-"""Quadratic B-spline shape functions on a regular grid.
+"""Quadratic B-spline shape functions on a regular grid, in 2D or 3D.
 
 Positions are given in grid units relative to the grid origin (``X = (x - origin)/dx``).
+A particle's stencil is the 3^d nodes around it: 9 in 2D, 27 in 3D.
 """
 from __future__ import annotations
+
+import itertools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-# The nine stencil offsets (i, j), i-major.
-OFFSET_I = np.repeat(np.arange(3, dtype=np.int32), 3)
-OFFSET_J = np.tile(np.arange(3, dtype=np.int32), 3)
+
+def offsets(d: int) -> np.ndarray:
+    """(d, 3^d) int32 stencil offsets, first axis slowest (i-major): column k of
+    ``offsets(2)`` is (i, j) = (k // 3, k % 3)."""
+    return np.array(list(itertools.product(range(3), repeat=d)), np.int32).T
+
+
+# The nine 2D stencil offsets (i, j), i-major.
+OFFSET_I, OFFSET_J = offsets(2)
 
 
 def bspline_weights(fx: jax.Array) -> jax.Array:
@@ -24,22 +33,37 @@ def bspline_weights(fx: jax.Array) -> jax.Array:
     return jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
 
 
-def stencil(X: jax.Array, grid_shape: tuple[int, int]):
+def flat_strides(grid_shape: tuple[int, ...]) -> tuple[int, ...]:
+    """Row-major strides of a grid of node counts ``grid_shape`` (flat index = sum i_a s_a)."""
+    return tuple(int(np.prod(grid_shape[a + 1:], dtype=np.int64)) for a in range(len(grid_shape)))
+
+
+def stencil(X: jax.Array, grid_shape: tuple[int, ...]):
     """Stencil of each particle.
 
     Args:
-        X: (2, N) positions in grid units.
-        grid_shape: (nx, ny) nodes.
+        X: (d, N) positions in grid units (d = 2 or 3).
+        grid_shape: (nx, ny[, nz]) nodes.
     Returns:
-        idx: (9, N) flat node indices (i * ny + j).
-        w: (9, N) weights.
-        dpos: (2, 9, N) node position minus particle position, in cells.
+        idx: (3^d, N) flat node indices (row-major: i * ny + j in 2D).
+        w: (3^d, N) weights (products of the per-axis weights).
+        dpos: (d, 3^d, N) node position minus particle position, in cells.
     """
+    d = X.shape[0]
+    off = offsets(d)
     base = jnp.floor(X - 0.5)
     fx = X - base
     base = base.astype(jnp.int32)
-    wx, wy = bspline_weights(fx[0]), bspline_weights(fx[1])
-    w = jnp.stack([wx[i] * wy[j] for i in range(3) for j in range(3)])
-    dpos = jnp.stack([OFFSET_I[:, None] - fx[0][None], OFFSET_J[:, None] - fx[1][None]])
-    idx = (base[0][None] + OFFSET_I[:, None]) * grid_shape[1] + base[1][None] + OFFSET_J[:, None]
+    ws = [bspline_weights(fx[a]) for a in range(d)]
+    terms = []
+    for k in range(off.shape[1]):
+        t = ws[0][off[0, k]]
+        for a in range(1, d):
+            t = t * ws[a][off[a, k]]
+        terms.append(t)
+    w = jnp.stack(terms)
+    dpos = jnp.stack([off[a][:, None] - fx[a][None] for a in range(d)])
+    idx = base[0][None] + off[0][:, None]
+    for a in range(1, d):
+        idx = idx * grid_shape[a] + base[a][None] + off[a][:, None]
     return idx, w, dpos.astype(X.dtype)

@@ -31,7 +31,10 @@ from diffgns.trajectory import ELASTIC, FLUID, SAND, Trajectory
 
 
 class MPM:
-    """Explicit 2D MLS-MPM for one scene (static); parameters and state are pytrees.
+    """Explicit MLS-MPM for one scene (static); parameters and state are pytrees.
+
+    The spatial dimension d (2 or 3) is the scene's (``scene.dim``); one code path serves
+    both: 3^d-node quadratic B-spline stencils, d x d constitutive laws, 2d box walls.
 
     Args:
         scene: the :class:`~diffgns.scene.Scene` (its declared effects are all that is traced).
@@ -51,6 +54,8 @@ class MPM:
         self.dt = float(scene.substep_dt)
         self.n_sub = int(scene.substeps)
         self.grid_shape = scene.grid_shape
+        self.dim = int(scene.dim)
+        self.n_nodes = int(np.prod(self.grid_shape))
         self.origin = np.asarray(scene.grid_origin)
         self.lo = np.array([lo for lo, _ in scene.domain])
         self.hi = np.array([hi for _, hi in scene.domain])
@@ -90,7 +95,7 @@ class MPM:
         return arr[ids]
 
     def stress(self, params: MPMParams, state: MPMState, F=None):
-        """Kirchhoff stress tau (2,2,N) Pa and projected F of every particle."""
+        """Kirchhoff stress tau (d,d,N) Pa and projected F of every particle."""
         F = state.F if F is None else F
         taus, Fs = [], []
         for eff, sl in self.groups.items():
@@ -113,7 +118,7 @@ class MPM:
         return jnp.concatenate(taus, -1), jnp.concatenate(Fs, -1)
 
     def cauchy_stress(self, params: MPMParams, state: MPMState) -> jax.Array:
-        """(N, 2, 2) Cauchy stress sigma = tau / J, Pa (tension positive)."""
+        """(N, d, d) Cauchy stress sigma = tau / J, Pa (tension positive)."""
         tau, F = self.stress(params, state)
         return jnp.moveaxis(tau / la.det(F), -1, 0)
 
@@ -123,7 +128,7 @@ class MPM:
 
     def substep(self, params: MPMParams, state: MPMState) -> MPMState:
         """One explicit MLS-MPM substep of ``self.dt`` seconds."""
-        dt, dx, n_nodes = self.dt, self.dx, self.grid_shape[0] * self.grid_shape[1]
+        dt, dx, n_nodes, d = self.dt, self.dx, self.n_nodes, self.dim
         F_trial = state.F + dt * la.matmul(state.C, state.F)
         tau, F = self.stress(params, state, F_trial)
         mass = self.mass(params, state)
@@ -136,12 +141,12 @@ class MPM:
             gv = gv + dt * params.gravity[:, None]
         if "damping" in self.effects:
             gv = gv * jnp.exp(-dt * params.damping)
-        gv = boundaries.apply_walls(gv.reshape(2, *self.grid_shape), self.scene.walls,
+        gv = boundaries.apply_walls(gv.reshape(d, *self.grid_shape), self.scene.wall_list,
                                     params.wall_mu, self.scene.padding, self.scene.n_cells)
-        gv = gv.reshape(2, n_nodes)
+        gv = gv.reshape(d, n_nodes)
         if self.obstacle_nodes:
             gv = boundaries.apply_obstacles(gv, self.obstacle_nodes, params.obstacle_mu)
-        v, C = g2p(idx, w, dpos, gv.reshape(2, *self.grid_shape), dx)
+        v, C = g2p(idx, w, dpos, gv.reshape(d, *self.grid_shape), dx)
         x = state.x + dt * v
         lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
         # never leave the domain (and the grid), and count it (diffgns.clamp)

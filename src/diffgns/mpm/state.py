@@ -1,8 +1,8 @@
 """MPM state and parameter pytrees.
 
 Layout is component-major so that the substep is a chain of fused elementwise kernels:
-vectors are (2, N), matrices (2, 2, N). :class:`diffgns.trajectory.Trajectory` holds the
-user-facing (T, N, 2) layout.
+vectors are (d, N), matrices (d, d, N), d = 2 or 3 the scene's dimension.
+:class:`diffgns.trajectory.Trajectory` holds the user-facing (T, N, d) layout.
 """
 from __future__ import annotations
 
@@ -20,11 +20,11 @@ class MPMState:
     """Particle state.
 
     Attributes:
-        x: (2, N) positions, m.
-        v: (2, N) velocities, m/s.
-        C: (2, 2, N) APIC affine velocity field (velocity gradient), 1/s.
-        F: (2, 2, N) elastic deformation gradient.
-        vol: (N,) initial particle volumes (areas in 2D), m^2.
+        x: (d, N) positions, m.
+        v: (d, N) velocities, m/s.
+        C: (d, d, N) APIC affine velocity field (velocity gradient), 1/s.
+        F: (d, d, N) elastic deformation gradient.
+        vol: (N,) initial particle volumes (areas in 2D, m^2; volumes in 3D, m^3).
         clamp: :class:`~diffgns.clamp.ClampCount` of the current frame: positions the domain
             clamp moved in its substeps so far (counted, never silent).
     """
@@ -42,13 +42,14 @@ class MPMState:
 
     @staticmethod
     def from_particles(x: np.ndarray, v: np.ndarray, vol: np.ndarray, dtype) -> MPMState:
-        """Build a state at rest-deformation (F = I, C = 0) from (N, 2) positions/velocities."""
-        n = len(x)
-        eye = np.zeros((2, 2, n))
-        eye[0, 0] = eye[1, 1] = 1.0
+        """Build a state at rest-deformation (F = I, C = 0) from (N, d) positions/velocities."""
+        n, d = np.shape(x)
+        eye = np.zeros((d, d, n))
+        for i in range(d):
+            eye[i, i] = 1.0
         return MPMState(
             x=jnp.asarray(np.asarray(x).T, dtype), v=jnp.asarray(np.asarray(v).T, dtype),
-            C=jnp.zeros((2, 2, n), dtype), F=jnp.asarray(eye, dtype),
+            C=jnp.zeros((d, d, n), dtype), F=jnp.asarray(eye, dtype),
             vol=jnp.asarray(vol, dtype), clamp=ClampCount.zero(dtype),
         )
 
@@ -64,9 +65,10 @@ class MPMParams:
         E: Young's modulus, Pa.  nu: Poisson's ratio.  rho: density, kg/m^3.
         friction_angle: degrees (sand).  cohesion: Pa (sand).
         bulk_modulus: Pa (fluid).  viscosity: Pa s (fluid).  gamma: Tait exponent (fluid).
-        wall_mu: (4,) Coulomb coefficients of the left, right, bottom, top walls.
+        wall_mu: (2d,) Coulomb coefficients of the left, right, bottom, top (and in 3D back,
+            front) walls.
         obstacle_mu: (K,) Coulomb coefficients of the obstacles.
-        gravity: (2,) m/s^2.
+        gravity: (d,) m/s^2.
         damping: () grid velocity damping rate, 1/s.
     """
 
@@ -97,7 +99,7 @@ class MPMParams:
         cols = [jnp.asarray(c, dtype) for c in zip(*rows)]
         return MPMParams(
             *cols,
-            wall_mu=jnp.asarray([w.mu for w in scene.walls], dtype),
+            wall_mu=jnp.asarray([w.mu for w in scene.wall_list], dtype),
             obstacle_mu=jnp.asarray([o.surface.mu for o in scene.obstacles], dtype).reshape(-1),
             gravity=jnp.asarray(scene.gravity, dtype),
             damping=jnp.asarray(scene.damping, dtype),

@@ -11,14 +11,16 @@ from diffgns.scene.elements import Body, BoxObstacle, Walls
 
 def validate_scene(s) -> None:
     dom = s.domain
-    if len(dom) != 2 or any(len(ax) != 2 for ax in dom):
-        raise SceneError("Scene.domain must be ((xmin, xmax), (ymin, ymax)) in m")
-    for name, (lo, hi) in zip("xy", dom):
+    if len(dom) not in (2, 3) or any(len(ax) != 2 for ax in dom):
+        raise SceneError("Scene.domain must be ((xmin, xmax), (ymin, ymax)) in 2D or "
+                         "((xmin, xmax), (ymin, ymax), (zmin, zmax)) in 3D, in m")
+    d = len(dom)
+    for name, (lo, hi) in zip("xyz", dom):
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise SceneError(f"Scene.domain along {name} = ({lo}, {hi}) needs max > min")
     if not (isinstance(s.dx, (int, float)) and s.dx > 0 and math.isfinite(s.dx)):
         raise SceneError(f"Scene.dx = {s.dx!r} must be a positive cell size in m")
-    for name, (lo, hi) in zip("xy", dom):
+    for name, (lo, hi) in zip("xyz", dom):
         n = (hi - lo) / s.dx
         if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 2:
             raise SceneError(
@@ -27,8 +29,9 @@ def validate_scene(s) -> None:
             )
     if not (isinstance(s.padding, int) and s.padding >= 2):
         raise SceneError(f"Scene.padding = {s.padding!r} must be an integer >= 2 (grid cells)")
-    if len(s.gravity) != 2 or not all(math.isfinite(g) for g in s.gravity):
-        raise SceneError("Scene.gravity must be a vector of two finite numbers in m/s^2")
+    if len(s.gravity) != d or not all(math.isfinite(g) for g in s.gravity):
+        raise SceneError(f"Scene.gravity must be a vector of {d} finite numbers in m/s^2 "
+                         f"(one per domain axis), got {s.gravity}")
     if not (0 < s.frame_dt and math.isfinite(s.frame_dt)):
         raise SceneError(f"Scene.frame_dt = {s.frame_dt!r} must be > 0 s")
     if not (0 < s.cfl <= 0.5):
@@ -40,21 +43,30 @@ def validate_scene(s) -> None:
     if not s.bodies:
         raise SceneError("Scene.bodies is empty; add at least one Body")
     if not isinstance(s.walls, Walls):
-        raise SceneError("Scene.walls must be a Walls(left, right, bottom, top)")
+        raise SceneError("Scene.walls must be a Walls(left, right, bottom, top[, back, front])")
+    if d == 2 and s.walls.depth_walls_set:
+        raise SceneError("Scene.walls.back/front are set but the scene is 2D (a 2D box has no "
+                         "depth walls); remove them or give a 3D domain")
     for i, b in enumerate(s.bodies):
         if not isinstance(b, Body):
             raise SceneError(f"Scene.bodies[{i}] is a {type(b).__name__}, expected Body")
+        if b.shape.dim != d:
+            raise SceneError(
+                f"Scene.bodies[{i}] has a {b.shape.dim}D shape ({type(b.shape).__name__}) in a "
+                f"{d}D scene; use Rectangle/Polygon in 2D and Box/Cylinder in 3D")
     for i, o in enumerate(s.obstacles):
         if not isinstance(o, BoxObstacle):
             raise SceneError(f"Scene.obstacles[{i}] is a {type(o).__name__}, expected BoxObstacle")
-    (x0, x1), (y0, y1) = dom
-    tol = 1e-9 * max(x1 - x0, y1 - y0)
+        if o.dim != d:
+            raise SceneError(f"Scene.obstacles[{i}] is {o.dim}D in a {d}D scene; give z0 and z1 "
+                             "in 3D and neither in 2D")
+    tol = 1e-9 * max(hi - lo for lo, hi in dom)
     for i, b in enumerate(s.bodies):
-        bx0, by0, bx1, by1 = b.shape.bbox
-        if bx0 < x0 - tol or bx1 > x1 + tol or by0 < y0 - tol or by1 > y1 + tol:
+        blo, bhi = b.shape.lower, b.shape.upper
+        if any(bl < lo - tol or bh > hi + tol for bl, bh, (lo, hi) in zip(blo, bhi, dom)):
             raise SceneError(
                 f"Scene.bodies[{i}] ({b.name or type(b.shape).__name__}) with bounding box "
-                f"({bx0}, {by0}, {bx1}, {by1}) lies outside the domain {dom} (the grid padding "
+                f"{blo} to {bhi} lies outside the domain {dom} (the grid padding "
                 "is reserved for boundary conditions); move or shrink the body"
             )
     # overlapping bodies: a particle of one body inside another body's shape

@@ -1,4 +1,7 @@
-"""Declarative 2D scenes: domain, grid, bodies, walls, obstacles, gravity.
+"""Declarative 2D and 3D scenes: domain, grid, bodies, walls, obstacles, gravity.
+
+The dimension is the domain's: two (x, y) or three (x, y, z) axes; y is vertical in both
+(default gravity (0, -9.81[, 0])), z the depth axis of 3D.
 
 A :class:`Scene` is static and hashable; it is validated when constructed, so
 nothing invalid reaches jitted code. ``Scene.effects`` lists the physics the
@@ -17,25 +20,27 @@ from diffgns.scene.checks import validate_scene
 from diffgns.scene.elements import (
     WALL_KINDS,
     WALL_NAMES,
+    WALL_NAMES_3D,
     Body,
     BoxObstacle,
     Wall,
     Walls,
 )
 from diffgns.scene.materials import Fluid, Sand
-from diffgns.scene.shapes import Polygon, Rectangle
+from diffgns.scene.shapes import Box, Cylinder, Polygon, Rectangle
 
 
 @dataclass(frozen=True)
 class Scene:
-    """A 2D MPM scene.
+    """A 2D or 3D MPM scene.
 
     Args:
-        domain: ((xmin, xmax), (ymin, ymax)), m: the box the walls enclose.
+        domain: ((xmin, xmax), (ymin, ymax)) or, in 3D, ((xmin, xmax), (ymin, ymax),
+            (zmin, zmax)), m: the box the walls enclose; its length is the dimension.
         dx: grid cell size, m; the domain extents must be multiples of dx.
-        bodies: the bodies.
-        gravity: gravity vector, m/s^2.
-        walls: conditions of the four box walls.
+        bodies: the bodies (2D shapes in 2D, 3D shapes in 3D).
+        gravity: gravity vector, m/s^2 (default (0, -9.81) in 2D, (0, -9.81, 0) in 3D).
+        walls: conditions of the box walls (four in 2D, six in 3D).
         obstacles: static rigid boxes.
         frame_dt: time between output frames, s.
         padding: grid cells outside the domain on every side (>= 2).
@@ -49,7 +54,7 @@ class Scene:
     domain: tuple = ((0.0, 1.0), (0.0, 1.0))
     dx: float = 0.02
     bodies: tuple[Body, ...] = ()
-    gravity: tuple[float, float] = (0.0, -9.81)
+    gravity: tuple[float, ...] | None = None
     walls: Walls = Walls()
     obstacles: tuple[BoxObstacle, ...] = ()
     frame_dt: float = 2.5e-3
@@ -63,24 +68,42 @@ class Scene:
     def __post_init__(self):
         object.__setattr__(self, "bodies", tuple(self.bodies))
         object.__setattr__(self, "obstacles", tuple(self.obstacles))
-        object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
         dom = tuple(tuple(float(v) for v in ax) for ax in self.domain)
         object.__setattr__(self, "domain", dom)
+        g = self.gravity
+        if g is None:
+            g = (0.0, -9.81) + (0.0,) * max(0, len(dom) - 2)
+        object.__setattr__(self, "gravity", tuple(float(c) for c in g))
         validate_scene(self)
 
     # ------------------------------------------------------------------ grid
     @property
-    def n_cells(self) -> tuple[int, int]:
-        """Cells of the domain box along x and y (without padding)."""
+    def dim(self) -> int:
+        """Spatial dimension, 2 or 3 (the number of domain axes)."""
+        return len(self.domain)
+
+    @property
+    def wall_list(self) -> tuple[Wall, ...]:
+        """The 2 dim walls in the order of :data:`WALL_NAMES_3D` (left, right, bottom, top
+        [, back, front])."""
+        return self.walls.of(self.dim)
+
+    @property
+    def wall_names(self) -> tuple[str, ...]:
+        return WALL_NAMES_3D[: 2 * self.dim]
+
+    @property
+    def n_cells(self) -> tuple[int, ...]:
+        """Cells of the domain box along each axis (without padding)."""
         return tuple(int(round((hi - lo) / self.dx)) for lo, hi in self.domain)
 
     @property
-    def grid_shape(self) -> tuple[int, int]:
-        """Grid nodes along x and y, padding included."""
+    def grid_shape(self) -> tuple[int, ...]:
+        """Grid nodes along each axis, padding included."""
         return tuple(n + 2 * self.padding + 1 for n in self.n_cells)
 
     @property
-    def grid_origin(self) -> tuple[float, float]:
+    def grid_origin(self) -> tuple[float, ...]:
         """Position of grid node (0, 0), m."""
         return tuple(lo - self.padding * self.dx for lo, _ in self.domain)
 
@@ -91,7 +114,7 @@ class Scene:
         fx = {b.material.effect for b in self.bodies}
         if any(g != 0.0 for g in self.gravity):
             fx.add("gravity")
-        for w in self.walls:
+        for w in self.wall_list:
             fx.add(f"{w.kind}_walls")
         if self.obstacles:
             fx.add("obstacles")
@@ -103,7 +126,7 @@ class Scene:
     def particles(self) -> dict[str, np.ndarray]:
         """Particles of all bodies, grouped by material effect (static order).
 
-        Returns a dict of numpy arrays: ``x`` (N, 2) m, ``v`` (N, 2) m/s, ``vol`` (N,) m^2,
+        Returns a dict of numpy arrays: ``x`` (N, d) m, ``v`` (N, d) m/s, ``vol`` (N,) m^d,
         ``body`` (N,) int body index. Particles are ordered by material group
         (see :meth:`material_groups`) and within a group by body declaration order.
         """
@@ -153,9 +176,8 @@ class Scene:
         if self.max_speed is not None:
             return float(self.max_speed)
         v0 = max(math.hypot(*b.velocity) for b in self.bodies)
-        (x0, x1), (y0, y1) = self.domain
         g = math.hypot(*self.gravity)
-        return v0 + math.sqrt(2.0 * g * math.hypot(x1 - x0, y1 - y0))
+        return v0 + math.sqrt(2.0 * g * math.hypot(*(hi - lo for lo, hi in self.domain)))
 
     def stable_dt(self) -> float:
         """Largest stable substep, s: cfl*dx/(c_p + v_max), and the viscous limit for fluids."""
@@ -185,6 +207,6 @@ class Scene:
 EFFECT_ORDER = ("elastic_linear", "elastic_corotated", "sand", "fluid")
 
 __all__ = [
-    "Wall", "Walls", "BoxObstacle", "Body", "Scene", "Rectangle", "Polygon", "Sand",
-    "WALL_KINDS", "WALL_NAMES", "EFFECT_ORDER",
+    "Wall", "Walls", "BoxObstacle", "Body", "Scene", "Rectangle", "Polygon", "Box", "Cylinder",
+    "Sand", "WALL_KINDS", "WALL_NAMES", "WALL_NAMES_3D", "EFFECT_ORDER",
 ]

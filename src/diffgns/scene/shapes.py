@@ -1,4 +1,9 @@
-"""Body shapes and particle filling (m)."""
+"""Body shapes and particle filling (m): Rectangle and Polygon in 2D, Box and Cylinder in 3D.
+
+Every shape has ``dim``, ``lower``/``upper`` (bounding-box corners), ``fill(dx, ppc)`` ->
+(positions (n, dim) m, volumes (n,) m^dim) and ``contains(points (n, dim))``. In 3D, y is
+vertical: a Cylinder stands on the y axis.
+"""
 from __future__ import annotations
 
 import math
@@ -24,6 +29,8 @@ class Rectangle:
     x1: float
     y1: float
 
+    dim = 2
+
     def __post_init__(self):
         vals = (self.x0, self.y0, self.x1, self.y1)
         if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in vals):
@@ -34,6 +41,14 @@ class Rectangle:
     @property
     def bbox(self) -> tuple[float, float, float, float]:
         return (self.x0, self.y0, self.x1, self.y1)
+
+    @property
+    def lower(self) -> tuple[float, ...]:
+        return (self.x0, self.y0)
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        return (self.x1, self.y1)
 
     @property
     def area(self) -> float:
@@ -57,6 +72,8 @@ class Polygon:
 
     vertices: tuple
 
+    dim = 2
+
     def __post_init__(self):
         v = tuple(tuple(float(c) for c in p) for p in self.vertices)
         if len(v) < 3 or any(len(p) != 2 for p in v):
@@ -69,6 +86,14 @@ class Polygon:
     def bbox(self) -> tuple[float, float, float, float]:
         a = np.array(self.vertices)
         return (a[:, 0].min(), a[:, 1].min(), a[:, 0].max(), a[:, 1].max())
+
+    @property
+    def lower(self) -> tuple[float, ...]:
+        return self.bbox[:2]
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        return self.bbox[2:]
 
     @property
     def area(self) -> float:
@@ -101,4 +126,110 @@ class Polygon:
         return p, np.full(len(p), self.area / len(p))
 
 
-Shape = Rectangle | Polygon
+def _check_numbers(owner: str, vals: tuple) -> None:
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+               for v in vals):
+        raise SceneError(f"{owner} needs finite numbers, got {vals}")
+
+
+def _side(ppc: int) -> int:
+    """Particles per cell along one axis in 3D (ppc a perfect cube)."""
+    return round(ppc ** (1.0 / 3.0))
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned box [x0, x1] x [y0, y1] x [z0, z1], m (3D)."""
+
+    x0: float
+    y0: float
+    z0: float
+    x1: float
+    y1: float
+    z1: float
+
+    dim = 3
+
+    def __post_init__(self):
+        _check_numbers("Box", (self.x0, self.y0, self.z0, self.x1, self.y1, self.z1))
+        if not (self.x1 > self.x0 and self.y1 > self.y0 and self.z1 > self.z0):
+            raise SceneError(f"Box needs x1 > x0, y1 > y0 and z1 > z0, got {self.lower} to "
+                             f"{self.upper}")
+
+    @property
+    def lower(self) -> tuple[float, ...]:
+        return (self.x0, self.y0, self.z0)
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        return (self.x1, self.y1, self.z1)
+
+    @property
+    def volume(self) -> float:
+        return (self.x1 - self.x0) * (self.y1 - self.y0) * (self.z1 - self.z0)
+
+    def fill(self, dx: float, ppc: int) -> tuple[np.ndarray, np.ndarray]:
+        """Particles on a regular sub-lattice: positions (n, 3) m and volumes (n,) m^3."""
+        h = dx / _side(ppc)
+        axes = [_lattice(lo, hi, h) for lo, hi in zip(self.lower, self.upper)]
+        x = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], 1)
+        return x, np.full(len(x), self.volume / len(x))
+
+    def contains(self, p: np.ndarray) -> np.ndarray:
+        return np.all((p > np.array(self.lower)) & (p < np.array(self.upper)), axis=1)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Upright circular cylinder (axis along y, the vertical): centre (cx, cz) in the
+    horizontal plane, ``radius``, from y0 to y1, m (3D). The axisymmetric granular column."""
+
+    cx: float
+    cz: float
+    radius: float
+    y0: float
+    y1: float
+
+    dim = 3
+
+    def __post_init__(self):
+        _check_numbers("Cylinder", (self.cx, self.cz, self.radius, self.y0, self.y1))
+        if not (self.radius > 0 and self.y1 > self.y0):
+            raise SceneError(f"Cylinder needs radius > 0 and y1 > y0, got radius "
+                             f"{self.radius}, y0 {self.y0}, y1 {self.y1}")
+
+    @property
+    def lower(self) -> tuple[float, ...]:
+        return (self.cx - self.radius, self.y0, self.cz - self.radius)
+
+    @property
+    def upper(self) -> tuple[float, ...]:
+        return (self.cx + self.radius, self.y1, self.cz + self.radius)
+
+    @property
+    def volume(self) -> float:
+        return math.pi * self.radius**2 * (self.y1 - self.y0)
+
+    def contains(self, p: np.ndarray) -> np.ndarray:
+        r2 = (p[:, 0] - self.cx) ** 2 + (p[:, 2] - self.cz) ** 2
+        return (r2 < self.radius**2) & (p[:, 1] > self.y0) & (p[:, 1] < self.y1)
+
+    def fill(self, dx: float, ppc: int) -> tuple[np.ndarray, np.ndarray]:
+        """Particles of a regular sub-lattice (spacing dx / ppc^(1/3), centred on the axis)
+        inside the cylinder: positions (n, 3) m; volumes (n,) m^3 share the exact volume."""
+        h = dx / _side(ppc)
+        k = int(np.ceil(self.radius / h))
+        ring = (np.arange(-k, k) + 0.5) * h
+        ys = _lattice(self.y0, self.y1, h)
+        X, Y, Z = np.meshgrid(self.cx + ring, ys, self.cz + ring, indexing="ij")
+        p = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+        p = p[(p[:, 0] - self.cx) ** 2 + (p[:, 2] - self.cz) ** 2 <= self.radius**2]
+        if len(p) == 0:
+            raise SceneError(f"Cylinder of radius {self.radius} is too thin for a particle at "
+                             f"dx={dx}")
+        return p, np.full(len(p), self.volume / len(p))
+
+
+Shape = Rectangle | Polygon | Box | Cylinder
+SHAPES_2D = (Rectangle, Polygon)
+SHAPES_3D = (Box, Cylinder)
