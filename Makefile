@@ -61,7 +61,7 @@ docs: $(VENV)/.installed-docs
 # two real processes on this machine (jax.distributed, localhost coordinator, gloo): GNS
 # training equal to one process, sharded dataset generation merged equal to one process
 test-distributed: $(VENV)/.installed-test
-	$(PY) -m pytest -q -p no:cacheprovider tests/test_distributed.py
+	$(PY) -m pytest -q -p no:cacheprovider -m '' tests/test_distributed.py
 
 test-slow: $(VENV)/.installed-test
 	$(PY) -m pytest -q -m slow

@@ -98,6 +98,7 @@ def main() -> None:
     p.add_argument("--coarse-grain", type=int, default=1)
     p.add_argument("--n", type=int, default=4, help="squares flows of the dataset measurement")
     p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--dx", type=float, default=0.02, help="squares: grid cell size, m")
     p.add_argument("--out", default=None, help="JSON results file")
     args = p.parse_args()
     if args.worker:
@@ -107,7 +108,7 @@ def main() -> None:
                      load_before=Path("/proc/loadavg").read_text().strip())
     with tempfile.TemporaryDirectory() as d:
         ds = py + ["-m", "diffgns.cli", "dataset", "--kind", "squares", "--n", str(args.n),
-                   "--frames", str(args.frames)]
+                   "--frames", str(args.frames), "--dx", str(args.dx)]
         one, _ = _run([ds + ["--out", f"{d}/one.h5"]])
         two, _ = _run([ds + ["--out", f"{d}/two.h5", "--shard", f"{i}/2"] for i in range(2)])
         merge, _ = _run([py + ["-m", "diffgns.cli", "dataset", "--merge",

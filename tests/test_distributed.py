@@ -19,7 +19,7 @@ from flax import serialization
 
 from diffgns.cli import main
 from diffgns.errors import InputError
-from diffgns.io.datagen import column_jobs, generate_squares
+from diffgns.io.datagen import column_jobs
 from diffgns.io.shards import merge_shards, shard_path
 from diffgns.scene.recipes import column_samples
 from diffgns.shard import Shard
@@ -27,7 +27,6 @@ from diffgns.shard import Shard
 GNS_ARGS = ["--steps", "3", "--batch-size", "2", "--radius", "0.045", "--latent", "8",
             "--mp-steps", "1", "--mlp-layers", "1", "--noise-std", "1e-4", "--lr", "3e-3",
             "--checkpoint-every", "2", "--validate-every", "1000"]
-SQUARES = dict(n=3, n_frames=3, seed=0, dx=0.05, size=0.2)
 SQUARES_ARGS = ["--kind", "squares", "--n", "3", "--frames", "3", "--seed", "0", "--dx",
                 "0.05", "--size", "0.2"]
 
@@ -97,6 +96,9 @@ def test_column_shards_are_whole_vmap_batches():
 
 
 # ----------------------------------------------------------------------- training
+# slow: 437.6 s measured at 1-minute load ~20 on 2 cores (two GNS compilations in parallel
+# plus the one-process reference); `make test-distributed` runs it
+@pytest.mark.slow
 def test_two_processes_train_like_one_process(tmp_path):
     """Two processes (one CPU device each, the batch of 2 split one window per process,
     gradient all-reduced over gloo) end with the parameters of a one-process run on the same
@@ -152,10 +154,13 @@ def sharded(tmp_path_factory):
     t0 = time.perf_counter()
     _two_processes(["dataset", *SQUARES_ARGS, "--out", "two.h5"], d)
     seconds = time.perf_counter() - t0
-    generate_squares(d / "one.h5", progress=False, **SQUARES)
+    assert main(["dataset", *SQUARES_ARGS, "--out", str(d / "one.h5")]) == 0
     return d, seconds
 
 
+# slow: its fixture took 684 s at 1-minute load ~22 on 2 cores (two processes: 417 s; the
+# one-process reference: 4.4 min); `make test-distributed` runs it
+@pytest.mark.slow
 def test_two_process_dataset_equals_one_process(sharded):
     d, seconds = sharded
     shards = [shard_path(d / "two.h5", Shard(i, 2)) for i in range(2)]
@@ -168,6 +173,7 @@ def test_two_process_dataset_equals_one_process(sharded):
     print(f"two-process dataset test: {seconds:.1f} s (indicative, machine shared)")
 
 
+@pytest.mark.slow  # the shards of the fixture above
 def test_shard_resume_and_merge_command(sharded, capsys):
     """An explicit --shard run on a finished shard skips its trajectories; `diffgns dataset
     --merge` of the shards equals the one-process file; bad merges are refused."""
