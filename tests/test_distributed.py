@@ -200,3 +200,40 @@ def test_shard_resume_and_merge_command(sharded, capsys):
     assert main(["dataset", "--merge", str(shards[0]), "--out", str(d / "y.h5")]) == 2
     assert capsys.readouterr().err.startswith("diffgns: error: shards: shard(s) 1/2 missing")
     assert not (d / "y.h5").exists()
+
+
+def test_initialize_refuses_incomplete_or_out_of_range_options(monkeypatch):
+    from diffgns.distributed import initialize
+
+    for name in ("DIFFGNS_COORDINATOR", "DIFFGNS_NUM_PROCESSES", "DIFFGNS_PROCESS_ID"):
+        monkeypatch.delenv(name, raising=False)
+    assert initialize() is False  # nothing asked: one process, JAX untouched
+    cases = [(("localhost:1", 2, None), "give all three"),
+             (("localhost:1", 2, 2), "--process-id: must be in [0, 2)"),
+             (("localhost:1", 0, 0), "--num-processes: must be >= 1"),
+             (("localhost", 2, 0), "--coordinator: 'localhost' is not host:port")]
+    for args, message in cases:
+        with pytest.raises(InputError) as e:
+            initialize(*args)
+        assert message in str(e.value) and "\n" not in str(e.value)
+    monkeypatch.setenv("DIFFGNS_NUM_PROCESSES", "two")
+    with pytest.raises(InputError, match="DIFFGNS_NUM_PROCESSES: 'two' is not an integer"):
+        initialize()
+
+
+def test_one_process_placement_round_trips_exactly():
+    """In one process the global-array helpers are exact identities on the values."""
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    from diffgns.distributed import data_mesh, replicate, replicated, shard_batch, to_host
+
+    tree = {"w": np.arange(6, dtype=np.float32).reshape(2, 3), "n": np.int32(3)}
+    rep = replicate(tree)
+    assert all(x.sharding == replicated() for x in jax.tree.leaves(rep))
+    back = to_host(rep)
+    assert np.array_equal(back["w"], tree["w"]) and back["n"] == 3
+    mesh = data_mesh()
+    batch = shard_batch({"x": np.arange(4.0 * len(mesh.devices.flat)).reshape(-1, 2)},
+                        NamedSharding(mesh, PartitionSpec("data")))
+    assert batch["x"].shape == (2 * len(mesh.devices.flat), 2)
