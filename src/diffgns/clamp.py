@@ -90,5 +90,5 @@ def clamp_warning(summary: dict, what: str = "the rollout") -> str | None:
     return (f"warning: {what} clamped {summary['clamped_positions']} particle positions to the "
             f"domain in {summary['clamped_frames']} frames (first at frame "
             f"{summary['first_clamped_frame']}, moved by up to "
-            f"{1e3 * summary['max_clamp_shift_m']:.3g} mm): particles tried to leave the box, "
-            "so the trajectory is unreliable there")
+            f"{1e3 * summary['max_clamp_shift_m']:.3g} mm): particles crossed the domain "
+            "boundary and were put back on it")
