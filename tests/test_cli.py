@@ -22,6 +22,8 @@ def test_simulate_column_writes_outputs(tmp_path):
     # both runouts are named: the farthest particle (the plot's curve) and the deposit front
     assert set(s["runout_definitions"]) == {"final_runout_m", "deposit_front_m"}
     assert 0 < s["deposit_front_m"] <= s["final_runout_m"] + 0.02  # one 0.02 m bin at most
+    assert {"clamped_positions", "clamped_frames", "first_clamped_frame",
+            "max_clamp_shift_m"} <= set(s)  # clamps are reported (diffgns.clamp)
 
 
 def test_simulate_rejects_invalid_scene_file(tmp_path, capsys):
@@ -74,5 +76,6 @@ def test_hybrid_command_writes_comparison(tmp_path):
                       "hybrid K=2 M=4 (carry)"]
     assert rows[0]["mean_position_error_m"] == 0.0
     assert all(r["finite"] and r["mean_position_error_m"] < 0.01 for r in rows)
+    assert all(r["clamped_positions"] == 0 for r in rows[2:])  # the GNS and hybrid maps
     assert abs(rows[3]["mpm_fraction"] - 9 / 20) < 1e-9  # 5 warm-up + 2 x 2 refinement
     assert (out / "hybrid.gif").stat().st_size > 0
