@@ -49,6 +49,25 @@ def test_granular_dataset_writes_resumes_and_extends(tmp_path):
         generate_families(out, ["squares"], 3, 3, seed=4, progress=False)
 
 
+@pytest.mark.slow  # two MPM compilations (~60 s beside other jobs)
+def test_granular_shards_merge_into_the_one_process_layout(tmp_path):
+    """--shard 0/2 and 1/2 (one per core) merged: every sample once, with its family and
+    obstacles as drawn."""
+    from diffgns.io.shards import merge_shards, shards_of
+    from diffgns.shard import Shard
+
+    out = tmp_path / "g.h5"
+    for i in (0, 1):
+        generate_families(out, FAMS, 2, 3, seed=5, progress=False, shard=Shard(i, 2))
+    merge_shards(shards_of(out, 2), out)
+    assert read_families(out) == {"00000": "obstacles", "00001": "columns"}
+    for key, (family, s) in zip(("00000", "00001"), family_plan(FAMS, 2, 5)):
+        desc = random_sample(family, s)[1]
+        np.testing.assert_array_equal(read_obstacles(out, key),
+                                      np.asarray(desc["obstacles"]).reshape(-1, 4))
+    assert read_metadata(out)["family_counts"] == {"obstacles": 1, "columns": 1}
+
+
 @pytest.mark.parametrize("families", [["boulders"], ["columns", "sand"]])
 def test_cli_refuses_unknown_family(tmp_path, capsys, families):
     out = tmp_path / "x.h5"

@@ -56,9 +56,10 @@ def _dataset(args) -> int:
     from diffgns.shard import Shard
 
     shard = args.shard or (Shard.of_process() if joined else Shard())
-    if shard.count > 1 and args.kind not in ("column", "squares"):
+    if shard.count > 1 and args.kind not in ("column", "squares", "granular"):
         raise InputError("--shard", f"--kind {args.kind} is generated in one process",
-                         "shard --kind column or squares, or drop --shard/--distributed")
+                         "shard --kind column, squares or granular, or drop "
+                         "--shard/--distributed")
     check_dataset(args)
     from diffgns.io.shards import shard_path
 
@@ -117,7 +118,8 @@ def _generate(args, shard) -> int:
     if args.kind == "granular":  # issue 21: random scenes of every family
         from diffgns.io.families_data import generate_families
 
-        path = generate_families(args.out, args.families, args.n, args.frames, seed=args.seed)
+        path = generate_families(args.out, args.families, args.n, args.frames, seed=args.seed,
+                                 shard=shard)
         print(f"dataset written to {path}")
         return 0
     from diffgns.io.datagen import generate_columns, generate_squares
@@ -276,7 +278,8 @@ def register(sub) -> None:
                    help="largest Um dt / h_min, dimensionless (sets the CFD time step; "
                    "default 0.15)")
     d.add_argument("--shard", type=shard_arg, default=None, metavar="I/N",
-                   help="column/squares: make only shard I of N (every N-th unit of work) into "
+                   help="column/squares/granular: make only shard I of N (every N-th unit of "
+                   "work) into "
                    "<out stem>.shard-I-of-N.h5, resumable; merge with --merge (default: "
                    "all, or this process's share under --distributed/--coordinator)")
     from diffgns.cli.train import add_distributed_arguments

@@ -28,11 +28,12 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from diffgns.io.dataset import DatasetWriter
 from diffgns.io.files import _TMP_PREFIX
+from diffgns.io.shards import shard_writer
 from diffgns.mpm import MPM
 from diffgns.scene.families import ranges_dict
 from diffgns.scene.recipes import family_plan, family_scenes
+from diffgns.shard import Shard
 
 __all__ = ["families_recipe", "generate_families", "read_families", "read_obstacles"]
 
@@ -48,21 +49,24 @@ def families_recipe(families, n_frames: int, seed: int = 0, **ranges) -> dict:
 
 
 def generate_families(path, families, n: int, n_frames: int, seed: int = 0,
-                      progress: bool = True, **ranges) -> Path:
+                      progress: bool = True, shard: Shard | None = None, **ranges) -> Path:
     """Write ``n`` MPM trajectories of ``n_frames`` frames of random family scenes to
     ``path`` (staged as ``<path>.partial``, resumable, refused if the file has another
-    recipe); see the module docstring for the layout. Returns ``path``."""
+    recipe); see the module docstring for the layout. With ``shard`` only every
+    ``shard.count``-th sample, into :func:`~diffgns.io.shards.shard_path` (merge with
+    :func:`~diffgns.io.shards.merge_shards`). Returns the file written."""
+    shard = shard or Shard()
     recipe = families_recipe(families, n_frames, seed, **ranges)
     counts = Counter(f for f, _ in family_plan(families, n, seed))
     extra = dict(kind="granular", families=list(families), n_frames=int(n_frames),
                  seed=int(seed), family_counts=dict(counts))
     dx = recipe["ranges"]["dx"]
-    with DatasetWriter(path, metadata_extra=extra, recipe=recipe, staged=True) as w:
+    with shard_writer(path, shard, extra, recipe) as w:
         for i, (family, s, scene, desc) in enumerate(tqdm(
                 family_scenes(families, n, seed, **ranges), total=n, desc="granular scenes",
                 disable=not progress)):
             key = f"{i:05d}"
-            if w.has(key):
+            if not shard.owns(i) or w.has(key):
                 continue
             sim = MPM(scene)
             t0 = time.perf_counter()
@@ -74,7 +78,7 @@ def generate_families(path, families, n: int, n_frames: int, seed: int = 0,
                                           description=json.dumps(desc), mpm_seconds=seconds,
                                           n_substeps=scene.substeps))
         w.finalize(connectivity_radius=2.0 * dx)
-    return Path(path)
+    return Path(w.final_path)
 
 
 def read_obstacles(path: str | Path, key: str) -> np.ndarray:
