@@ -59,6 +59,7 @@ Writes ``benchmarks/results/gns_vs_torch.json``.
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 import protocol
@@ -362,7 +363,7 @@ def run_config(latent, mp_steps, scene, args, torch, jax, jnp):
     history_np, ptype_np, material_np = scene
     n = history_np.shape[0]
     d = diffgns_gns(latent, mp_steps, scene, jax, jnp)
-    first_step, (x_next_jax, nbrs_out) = measure(d["step"])
+    first_step, (x_next_jax, nbrs_out, _clamp) = measure(d["step"])
     first_net, acc_jax = measure(d["network"])
     if d["overflowed"]((x_next_jax, nbrs_out)):
         raise RuntimeError("neighbour list overflowed in the benchmark step")
@@ -424,6 +425,9 @@ def run_config(latent, mp_steps, scene, args, torch, jax, jnp):
         "timings": timings, "ratios": ratios, "rounds": rounds,
         "_objects": (d["gns"], d["params"], d["history"], d["ptype"], d["material"], d["nbrs"],
                      model, th, tp, tm, edge_index),
+        "_calls": {"step": d["step"], "network": d["network"], "train": d["train"],
+                   "torch_train": torch_train, "target": d["target"],
+                   "graph": (d["senders"], d["receivers"], d["mask"])},
     }
 
 
@@ -434,6 +438,7 @@ def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
     from diffgns.graph.neighbors import edges
     from diffgns.graph.networks import MLP, InteractionStep
 
+    config_res = res
     gns, params, history, ptype, material, nbrs, model, th, tp, tm, edge_index = res["_objects"]
     cfg = gns.config
     n, L = history.shape[0], cfg.latent
@@ -537,6 +542,66 @@ def profile_diffgns(res, repeats, torch, jax, jnp) -> dict:
         return torch_radius_graph(torch, th[:, -1], RADIUS)[0]
 
     out["torch_radius_graph"] = ms_torch(tgraph, repeats)
+    out["host"] = host_profile(config_res, repeats, torch, jax, jnp)
+    return out
+
+
+def fresh_pages(fn, sync, calls: int = 3) -> dict:
+    """Per call of ``fn``: minor page faults (fresh pages the kernel maps and zeroes, in MB
+    at 4 KiB a page), user and system CPU seconds, wall seconds (``getrusage``, whole
+    process; two warm-up calls first)."""
+    import resource
+
+    for _ in range(2):
+        sync(fn())
+    r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    for _ in range(calls):
+        sync(fn())
+    r1, t1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    return {"fresh_page_MB": (r1.ru_minflt - r0.ru_minflt) * 4096 / 1e6 / calls,
+            "user_s": (r1.ru_utime - r0.ru_utime) / calls,
+            "sys_s": (r1.ru_stime - r0.ru_stime) / calls, "wall_s": (t1 - t0) / calls}
+
+
+def host_profile(res, repeats, torch, jax, jnp, k: int = 4) -> dict:
+    """Host-side cost of a call: XLA's CPU runtime allocates an executable's temporary
+    buffer at every call and frees it after; glibc maps a fresh zeroed region for it, so a
+    call pays page faults in proportion to its temporaries (GBs for a training step).
+    Measured for the step, the network and the training step on both sides, and for ``k``
+    training steps in one ``lax.scan`` call (one temporary buffer for ``k`` steps), timed
+    per step interleaved with the single-step call."""
+    import optax
+
+    gns, params, history, ptype, material, nbrs, model, th, tp, tm, edge_index = res["_objects"]
+    d = res["_calls"]
+    out: dict = {"note": "per call; fresh_page_MB = minor faults x 4 KiB"}
+    for name in ("step", "network", "train"):
+        out[f"diffgns_{name}"] = fresh_pages(d[name], block)
+    out["torch_train"] = fresh_pages(d["torch_train"], no_sync)
+    s, r, m = d["graph"]
+    opt = optax.adam(1e-4)
+    weight = jnp.asarray(ptype != KINEMATIC, jnp.float32)
+
+    def loss(p, target):
+        o = gns.normalized_acceleration(p, history, ptype, material, s, r, m)
+        return jnp.sum(weight[:, None] * (o - target) ** 2) / (2.0 * jnp.sum(weight))
+
+    def one(carry, target):
+        p, st = carry
+        value, grads = jax.value_and_grad(loss)(p, target)
+        updates, st = opt.update(grads, st, p)
+        return (optax.apply_updates(p, updates), st), value
+
+    scan = jax.jit(lambda p, st, t: jax.lax.scan(one, (p, st), t))
+    targets = jnp.stack([d["target"]] * k)
+    st0 = opt.init(params)
+    out[f"diffgns_train_scan_{k}_per_call"] = fresh_pages(
+        lambda: scan(params, st0, targets), block)
+    rr = interleave({"single": d["train"], "scan": lambda: scan(params, st0, targets)},
+                    max(5, repeats // 2), sync={"single": block, "scan": block})
+    out[f"train_ms_per_step_single_vs_scan_{k}"] = {
+        "single": 1e3 * rr.summary("single")["median_s"],
+        "scan": 1e3 * rr.summary("scan")["median_s"] / k}
     return out
 
 
@@ -571,6 +636,8 @@ def print_profile(run: protocol.Run, profile: dict) -> None:
         if isinstance(val, dict):
             for kk, vv in val.items():
                 fmt = ".1e" if k.endswith("_from_padded") else ".1f"
+                if isinstance(vv, dict):
+                    vv = ", ".join(f"{a} {b:.3g}" for a, b in vv.items())
                 run.print(f"  {k}: {kk}: {vv:{fmt}}" if isinstance(vv, float)
                           else f"  {k}: {kk}: {vv}")
         elif isinstance(val, float):
@@ -619,6 +686,7 @@ def main(argv=None) -> None:
                                                      torch, jax, jnp)}
     for res in results.values():
         res.pop("_objects")
+        res.pop("_calls")
     print_table(run, results)
     if ref is not None:
         run.print(f"target diffgns step <= {TARGET_RATIO} x torch step ({ref_key}): "
