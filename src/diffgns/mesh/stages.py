@@ -87,10 +87,11 @@ def parse_stages(text: str) -> tuple[Stage, ...]:
             raise InputError("--stages", f"{part!r} is not UNTIL:NOISE[:K]",
                              "e.g. 4000:0.005:1,8000:0.0025:4")
         try:
-            out.append(Stage(int(f[0]), float(f[1]), int(f[2]) if len(f) == 3 else 1))
+            until, noise, k = int(f[0]), float(f[1]), int(f[2]) if len(f) == 3 else 1
         except ValueError:
             raise InputError("--stages", f"{part!r}: UNTIL and K must be integers, NOISE a "
                              "number") from None
+        out.append(Stage(until, noise, k))
     ends = [s.until for s in out]
     if ends != sorted(set(ends)):
         raise InputError("--stages", f"stage ends {ends} must increase")

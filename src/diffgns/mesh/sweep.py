@@ -27,15 +27,15 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
-from diffgns.errors import InputError
+from diffgns.errors import InputError, Interrupted
 from diffgns.mesh.datagen import CylinderRun, simulate_case
 from diffgns.mesh.dataset import CylinderDatasetWriter
 
@@ -90,11 +90,13 @@ class Sweep:
                     height=self.height)
 
 
-def _simulate(case: dict, run: CylinderRun) -> tuple[dict, dict, float]:
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+def _simulate(job: tuple[int, dict, CylinderRun]) -> tuple[int, dict, dict, float]:
+    """One CFD run in a worker process: (index, arrays, attrs, wall seconds)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool
+    i, case, run = job
     t0 = time.perf_counter()
     arrays, attrs = simulate_case(case, run)
-    return arrays, attrs, time.perf_counter() - t0
+    return i, arrays, attrs, time.perf_counter() - t0
 
 
 def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
@@ -110,12 +112,10 @@ def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
                                staged=True) as w:
         todo = [i for i in range(len(sweep.reynolds)) if not w.has(f"{i:05d}")]
         if todo:
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=get_context("spawn")) \
-                    as pool:
-                futs = {pool.submit(_simulate, sweep.case(i), sweep.run): i for i in todo}
-                for fut in as_completed(futs):
-                    i = futs[fut]
-                    arrays, attrs, secs = fut.result()
+            pool = get_context("spawn").Pool(min(workers, len(todo)))
+            try:
+                jobs = [(i, sweep.case(i), sweep.run) for i in todo]
+                for i, arrays, attrs, secs in pool.imap_unordered(_simulate, jobs):
                     w.write(f"{i:05d}", arrays, dict(attrs, index=i))
                     done.append((f"{i:05d}", sweep.reynolds[i], round(secs, 1),
                                  attrs["strouhal"], attrs["cl_amplitude_drift"]))
@@ -123,6 +123,9 @@ def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
                         print(f"  Re {sweep.reynolds[i]:g}: {secs:.0f} s, St "
                               f"{attrs['strouhal']:.4f}, lift drift "
                               f"{attrs['cl_amplitude_drift']:.3f}", flush=True)
+            finally:  # normal end, an error or SIGTERM/SIGINT: no CFD process outlives us
+                pool.terminate()
+                pool.join()
         w.finalize()
     return dict(wall_s=time.perf_counter() - t0, cases=sorted(done))
 
@@ -144,6 +147,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                           kick_time=0.3, **COARSE_MESH)
     except ValueError as e:
         raise InputError("--frames/--frame-dt/--spinup", str(e)) from None
+    def stop(signum, frame):
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGTERM, stop)  # SIGINT raises KeyboardInterrupt already
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # inherited by the CFD processes
     res = generate_sweep(a.out, Sweep(tuple(a.re), run=run), workers=a.workers)
     print(f"{a.out}: {len(res['cases'])} new trajectories in {res['wall_s']:.0f} s wall "
           f"({a.workers} workers)")
@@ -155,3 +163,7 @@ if __name__ == "__main__":  # pragma: no cover
         sys.exit(main())
     except InputError as e:
         sys.exit(f"error: {e}")
+    except (Interrupted, KeyboardInterrupt) as e:
+        print(f"{e}; stored trajectories kept, run the same command to resume",
+              file=sys.stderr)
+        sys.exit(getattr(e, "code", 130))
