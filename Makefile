@@ -122,8 +122,9 @@ granular-test-data: $(VENV)/.installed-test
 # meshnet-train resumes the run from the committed checkpoint (checkpoints/meshnet_sweep/)
 # and stops cleanly on SIGTERM (rerun to resume); meshnet-eval prints the targets table.
 MESHNET_RUN ?= runs/meshnet_sweep
-MESHNET_STAGES ?= 3000:0.003:1,6000:0.0015:1,20000:0.0005:4
-MESHNET_NET ?= --latent 64 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5
+MESHNET_STAGES ?= 1000:0.003:1,3000:0.0015:1,20000:0.0005:4
+MESHNET_NET ?= --latent 32 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5 \
+	--checkpoint-every 100
 .PHONY: meshnet-data meshnet-train meshnet-eval
 meshnet-data: $(VENV)/.installed-test
 	OMP_NUM_THREADS=1 nice -n 19 $(PY) -m diffgns.mesh.sweep --out data/sweep_train.h5 \
@@ -132,8 +133,10 @@ meshnet-data: $(VENV)/.installed-test
 		--re 110 165 220 85 275
 
 meshnet-train: $(VENV)/.installed-test
-	test -e $(MESHNET_RUN)/checkpoint.json || { mkdir -p $(MESHNET_RUN) && \
-		cp -r checkpoints/meshnet_sweep/. $(MESHNET_RUN)/; }
+	@test -f data/sweep_train.h5 || { echo "data/sweep_train.h5 missing: make meshnet-data"; exit 2; }
+	@# a new run folder starts from the committed checkpoint when there is one
+	test -e $(MESHNET_RUN)/checkpoint.json || ! test -d checkpoints/meshnet_sweep || \
+		{ mkdir -p $(MESHNET_RUN) && cp -r checkpoints/meshnet_sweep/. $(MESHNET_RUN)/; }
 	nice -n 19 $(PY) -m diffgns.mesh.stages --data data/sweep_train.h5 --out $(MESHNET_RUN) \
 		--stages $(MESHNET_STAGES) $(MESHNET_NET)
 
