@@ -149,6 +149,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
+    from diffgns.io.files import check_input_file
     from diffgns.mesh.train import load_cylinder, load_model
 
     p = argparse.ArgumentParser(prog="python -m diffgns.mesh.evaluate",
@@ -159,6 +160,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=1, help="timed rollouts per case")
     p.add_argument("--json", default=None, help="write the metrics here")
     a = p.parse_args(argv)
+    check_input_file(a.data, "--data", metadata=True)
     model, params, info = load_model(a.model)
     res = []
     for traj in load_cylinder(a.data):
@@ -175,4 +177,11 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    import sys
+
+    from diffgns.errors import InputError
+
+    try:
+        sys.exit(main())
+    except InputError as e:
+        sys.exit(f"error: {e}")

@@ -49,6 +49,7 @@ from diffgns.graph.fit import (
 )
 from diffgns.interface import scan_frames
 from diffgns.io.dataset import read_metadata
+from diffgns.io.files import check_input_file
 from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig
 from diffgns.mesh.train import (
     graphs_of,
@@ -231,6 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=250)
     a = p.parse_args(argv)
+    check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
     n = stages[-1].until
     for name in ("latent", "mp_steps", "batch_size"):
