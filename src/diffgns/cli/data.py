@@ -52,7 +52,9 @@ def _dataset(args) -> int:
 
     if args.merge:
         return _merge(args)
-    joined = _join(args)
+    from diffgns.cli.train import join_if_asked
+
+    joined = join_if_asked(args)
     from diffgns.shard import Shard
 
     shard = args.shard or (Shard.of_process() if joined else Shard())
@@ -83,14 +85,6 @@ def _dataset(args) -> int:
             print(f"dataset written to {merge_shards(shards_of(args.out, shard.count), args.out)}")
         barrier("diffgns-dataset-merged")
     return 0
-
-
-def _join(args) -> bool:
-    """Join a multi-process run if the options ask for one (before any JAX computation)."""
-    from diffgns.distributed import initialize
-
-    return initialize(args.coordinator, args.num_processes, args.process_id,
-                      auto=args.distributed)
 
 
 def _merge(args) -> int:

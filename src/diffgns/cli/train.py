@@ -15,16 +15,24 @@ def _check_inputs(args) -> None:
     if args.valid:
         check_input_file(args.valid, "--valid", metadata=True)
 
-def _join(args) -> None:
-    """Join a multi-process run (before any JAX computation) if the options ask for one."""
+def join_if_asked(args) -> bool:
+    """Join a multi-process run (before any JAX computation) if the options or the
+    ``DIFFGNS_*`` variables ask for one; JAX is imported only then. Returns whether joined."""
+    import os
+
+    env = ("DIFFGNS_COORDINATOR", "DIFFGNS_NUM_PROCESSES", "DIFFGNS_PROCESS_ID")
+    if not (args.distributed or args.coordinator or args.num_processes is not None
+            or args.process_id is not None or any(os.environ.get(v) for v in env)):
+        return False
     from diffgns.distributed import initialize
 
-    initialize(args.coordinator, args.num_processes, args.process_id, auto=args.distributed)
+    return initialize(args.coordinator, args.num_processes, args.process_id,
+                      auto=args.distributed)
 
 
 def _train(args) -> int:
     _check_inputs(args)
-    _join(args)
+    join_if_asked(args)
     from diffgns.graph.train_loop import train
     from diffgns.graph.training import TrainConfig
 
