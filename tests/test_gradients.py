@@ -32,7 +32,7 @@ def test_kernel_gradients(x64):
                 modes=("rev",), eps=1e-7, rtol=1e-4)
     # Coulomb wall friction with sliding nodes moving into the wall
     vx, vy = jnp.asarray([0.5, -0.3, 0.2]), jnp.asarray([-0.2, -0.1, -0.4])
-    check_grads(lambda vx, vy, mu: boundaries.wall_friction(vx, vy, 0.0, 1.0, mu),
+    check_grads(lambda vx, vy, mu: boundaries.wall_friction((vx, vy), (0.0, 1.0), mu),
                 (vx, vy, 0.3), order=1, modes=("fwd", "rev"))
 
 
@@ -148,7 +148,7 @@ def test_gradients_wrt_density_poisson_velocity_and_geometry(x64):
 def test_wall_friction_and_empty_node_gradients_finite_at_rest(x64):
     """Zero velocity at a frictional wall and empty grid nodes: finite (zero) gradients."""
     g = jax.grad(lambda v, mu: sum(jnp.sum(c) for c in boundaries.wall_friction(
-        v[0], v[1], 0.0, 1.0, mu)), argnums=(0, 1))(jnp.zeros((2, 4)), 0.4)
+        (v[0], v[1]), (0.0, 1.0), mu)), argnums=(0, 1))(jnp.zeros((2, 4)), 0.4)
     assert all(np.isfinite(np.asarray(x)).all() for x in g)
     empty = jnp.zeros((5, 3))  # no mass anywhere
     gv = jax.grad(lambda grid: grid_velocity(grid).sum())(empty)
