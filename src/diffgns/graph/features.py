@@ -203,7 +203,7 @@ def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Nor
             :func:`obstacle_distances`; None (every shipped model) adds nothing.
 
     Returns:
-        (N, 2C + 4 [+ 3] [+ 1]) features (see the module docstring for the order).
+        (N, 2C + 4 (+ 3) (+ 1)) features (see the module docstring for the order).
     """
     n = history.shape[0]
     vel = vel_normalizer.normalize(velocities(history)).reshape(n, -1)
