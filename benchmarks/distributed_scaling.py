@@ -19,7 +19,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
+
+import protocol
 
 
 def _port() -> int:
@@ -99,13 +100,15 @@ def main() -> None:
     p.add_argument("--n", type=int, default=4, help="squares flows of the dataset measurement")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--dx", type=float, default=0.02, help="squares: grid cell size, m")
-    p.add_argument("--out", default=None, help="JSON results file")
+    p.add_argument("--out", default="distributed_scaling.json",
+                   help="JSON results file (benchmarks/results/<out> unless it has a folder)")
+    protocol.add_arguments(p)
     args = p.parse_args()
     if args.worker:
         return _worker(args)
+    run = protocol.start(args, "distributed_scaling")  # load, steal, commit; refuses if loaded
     py = [sys.executable]
-    res: dict = dict(date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                     load_before=Path("/proc/loadavg").read_text().strip())
+    res: dict = {}
     with tempfile.TemporaryDirectory() as d:
         ds = py + ["-m", "diffgns.cli", "dataset", "--kind", "squares", "--n", str(args.n),
                    "--frames", str(args.frames), "--dx", str(args.dx)]
@@ -128,10 +131,8 @@ def main() -> None:
                                   "2", "--process-id", str(i)] for i in range(2)])
         res["train_2"] = json.loads([ln for ln in outs[0].splitlines()
                                      if ln.startswith("{")][-1])
-    res["load_after"] = Path("/proc/loadavg").read_text().strip()
-    print(json.dumps(res, indent=2))
-    if args.out:
-        Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    run.print(json.dumps(res, indent=2))
+    run.print(f"wrote {run.finish(args.out, res)}")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,8 @@ import os
 import time
 from pathlib import Path
 
+import protocol
+
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_DEG = {"gns": 1.0, "mpm": 0.5, "hybrid": 1.0}  # issue 21's tolerances
 
@@ -76,7 +78,9 @@ def main(argv=None) -> None:
     ap.add_argument("--max-iter", type=int, default=20)
     ap.add_argument("--step-tol", type=float, default=0.01, help="deg")
     ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
+    protocol.add_arguments(ap)
     args = ap.parse_args(argv)
+    run = protocol.start(args, "inverse_sweep")  # load, steal, commit; refuses if loaded
 
     from diffgns.inverse.job import make_objective, make_simulator, solve
     from diffgns.inverse.simulators import (
@@ -134,7 +138,8 @@ def main(argv=None) -> None:
                 rows.append(row)
                 done.add(key(row))
                 jpath.write_text(json.dumps(dict(
-                    model=model, settings=vars(args), commit=_commit(), rows=rows),
+                    model=model, settings=vars(args), commit=_commit(), rows=rows,
+                    protocol=run.metadata()),
                     indent=2))
                 mpath.write_text(markdown(rows, model))
     print(markdown(rows, model))
