@@ -160,7 +160,8 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
             why.append(f"{name}'s sand has " + ", ".join(
                 f"{k} = {got:g} (trained on {want:g})" for k, (got, want) in diff.items())
                 + "; the network's only material input is tan(friction_angle)")
-    ppcs = sorted({b.particles_per_cell for b in scene.bodies})
+    # Body fills particles_per_cell and velocity per dimension at construction (never None)
+    ppcs = sorted({int(b.particles_per_cell or 0) for b in scene.bodies})
     if resolution == "exact" and src.dx is not None:
         if not _close(scene.dx, src.dx):
             why.append(f"its MPM cell size dx = {scene.dx:g} m is not the {src.dx:g} m the model "
@@ -195,9 +196,9 @@ def _warnings(scene: Scene) -> list[str]:
     if scene.obstacles:
         out.append(f"the scene has {len(scene.obstacles)} obstacle(s); the network has no "
                    "obstacle input (trained without obstacles)")
-    if any(any(v != 0 for v in b.velocity) for b in scene.bodies):
+    if any(any(v != 0 for v in (b.velocity or ())) for b in scene.bodies):
         out.append("bodies start moving; the training scenes started at rest")
-    if tuple(scene.gravity) != (0.0, -9.81):
+    if tuple(scene.gravity or ()) != (0.0, -9.81):
         out.append(f"gravity {scene.gravity} m/s^2 differs from the training (0, -9.81)")
     return out
 
