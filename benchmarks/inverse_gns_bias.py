@@ -86,7 +86,7 @@ def main(argv=None) -> None:
     run = protocol.start(args, "inverse_gns_bias", timed=False)
     from diffgns.inverse.simulators import Column, ColumnCase, load_gns
 
-    loaded = load_gns()
+    loaded = load_gns("gns_columns")  # the 8-cell ColumnCase default is its resolution
     rows = []
 
     def body():

@@ -120,7 +120,7 @@ def test_column_observation_operator_and_model_checks(tmp_path):
     np.testing.assert_allclose(nodes[0].mean(0), np.asarray(x).mean(0), rtol=1e-6)
     st = col.initial_state({"aspect_ratio": 1.5})
     assert float(st.x[1].max()) == pytest.approx(1.5 * float(col.state.x[1].max()), rel=1e-6)
-    loaded = load_gns()
+    loaded = load_gns("gns_columns")  # the 8-cell ColumnCase default is its resolution
     with pytest.raises(ValueError, match="frame_stride"):
         gns_simulator(Column(ColumnCase(aspect_ratio=1.0, frame_stride=1)),
                       observed=np.zeros((10, 64, 2)), loaded=loaded)
