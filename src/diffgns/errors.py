@@ -35,3 +35,18 @@ class Interrupted(BaseException):
 
         self.signum, self.code = int(signum), 128 + int(signum)
         super().__init__(f"interrupted by {signal.Signals(signum).name}")
+
+
+def run_module(main, interrupted_hint: str = "") -> None:  # pragma: no cover - exits
+    """Entry point of a ``python -m diffgns.<module>`` command: exit with ``main()``'s status;
+    an :class:`InputError` becomes one ``error: ...`` line (status 1), an interruption one
+    line (plus ``interrupted_hint``) and its status (130 for Ctrl-C)."""
+    import sys
+
+    try:
+        sys.exit(main())
+    except InputError as e:
+        sys.exit(f"error: {e}")
+    except (Interrupted, KeyboardInterrupt) as e:
+        print(f"{e}{interrupted_hint}", file=sys.stderr)
+        sys.exit(getattr(e, "code", 130))

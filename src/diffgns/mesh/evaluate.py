@@ -177,11 +177,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    import sys
+    from diffgns.errors import run_module
 
-    from diffgns.errors import InputError
-
-    try:
-        sys.exit(main())
-    except InputError as e:
-        sys.exit(f"error: {e}")
+    run_module(main)

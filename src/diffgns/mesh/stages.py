@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -38,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from diffgns.errors import InputError
+from diffgns.errors import InputError, run_module
 from diffgns.graph.fit import (
     TrainConfig,
     TrainingInterrupted,
@@ -251,7 +250,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    try:
-        sys.exit(main())
-    except InputError as e:
-        sys.exit(f"error: {e}")
+    run_module(main)

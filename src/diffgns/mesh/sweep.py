@@ -28,14 +28,13 @@ import argparse
 import math
 import os
 import signal
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
-from diffgns.errors import InputError, Interrupted
+from diffgns.errors import InputError, Interrupted, run_module
 from diffgns.mesh.datagen import CylinderRun, simulate_case
 from diffgns.mesh.dataset import CylinderDatasetWriter
 
@@ -159,11 +158,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    try:
-        sys.exit(main())
-    except InputError as e:
-        sys.exit(f"error: {e}")
-    except (Interrupted, KeyboardInterrupt) as e:
-        print(f"{e}; stored trajectories kept, run the same command to resume",
-              file=sys.stderr)
-        sys.exit(getattr(e, "code", 130))
+    run_module(main, "; stored trajectories kept, run the same command to resume")
