@@ -232,7 +232,7 @@ class DiffgnsMPM88:
             gv = grid_velocity(grid)
             gv = gv.at[1].add(-DT * GRAVITY).reshape(2, N_GRID, N_GRID)
             for sl, (nx, ny) in slabs:
-                vx, vy = wall_slip(gv[0][sl], gv[1][sl], nx, ny)
+                vx, vy = wall_slip((gv[0][sl], gv[1][sl]), (nx, ny))
                 gv = gv.at[(slice(None), *sl)].set(jnp.stack([vx, vy]))
             v, C = g2p(idx, w, dpos, gv, DX)
             x = x + DT * v

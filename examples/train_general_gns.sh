@@ -16,7 +16,10 @@ set -euo pipefail
 DATA=${DATA:-data/granular_train.h5}
 VALID=${VALID:-data/granular_valid.h5}
 RUNS=${RUNS:-runs/general}
-NET="--radius 0.032 --latent 64 --mp-steps 5 --coarse-grain 16 --frame-stride 2 --batch-size 2"
+# every window sees its own box and obstacles (diffgns.graph.geometry); node counts padded
+# to multiples of 32 (few compiled programs), families sampled with equal weights
+NET="--radius 0.032 --latent 64 --mp-steps 5 --coarse-grain 16 --frame-stride 2 --batch-size 2 \
+ --obstacle-features --pad-nodes 32"
 run() { if [ -n "${DRY:-}" ]; then echo "$@"; else "$@"; fi; }
 
 stage() {  # stage NAME INIT NOISE PUSH STEPS LR LR_FINAL

@@ -212,6 +212,8 @@ def test_pinned_child_runs_this_script_pinned_and_returns_its_json(monkeypatch):
     assert "bench.py" in cmd and seen["env"][protocol.PINNED_ENV] == "1"
     assert not Path(cmd[cmd.index("--result-to") + 1]).exists()  # temp file removed
     assert parse(*cmd[5:]).threads == "1"
+    # the child of a valid run may itself wait for the load its start-up can cause
+    assert parse(*cmd[5:]).wait_quiet == protocol.QUIET_WAIT_CHILD_S > 0
 
 
 def test_refused_pinned_child_is_reported_not_raised():

@@ -282,3 +282,46 @@ def test_train_run_resumes_validates_and_writes_a_loadable_model(tmp_path):
     assert g.config == gns.config and info["steps"] == 8
     for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(resumed)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_several_steps_in_one_call_equal_single_steps_and_redo_on_overflow():
+    """Trainer.steps (k optimiser steps looped inside one device call, the default training
+    path) computes what k single steps compute, to float32 round-off; one compiled program
+    serves every count k <= steps_per_call; an overflow in any step of the call re-allocates
+    for that step's positions and redoes the call, so no edge is dropped."""
+    from diffgns.graph.training import steps_with_reallocation
+
+    trajs = synthetic()
+    gns = small_gns(trajs)
+    tr = Trainer(gns, TrainConfig(lr=3e-3, lr_final=3e-3, batch_size=2, steps_per_call=4))
+    sampler = WindowSampler(trajs, 5)
+    p0 = _init(gns, trajs)
+    draws = [step_rng(0, s) for s in range(7)]
+    batches = [sampler.sample(rng, 2) for rng, _ in draws]
+    keys = [k for _, k in draws]
+    p, o, single = p0, tr.opt.init(p0), []
+    nb1 = NeighborLists()
+    for b, k in zip(batches, keys):
+        p, o, loss = step_with_reallocation(tr, p, o, b, nb1, k)
+        single.append(float(loss))
+    # a list allocated too small for the later batches: the call must be redone
+    nb = NeighborLists()
+    spread = 0.1 + 0.2 * np.stack(np.meshgrid(np.arange(4), np.arange(4)), -1).reshape(-1, 2)
+    nb[16] = gns.allocate(jnp.asarray(spread, jnp.float32))  # no neighbours within 0.045
+    tiny = int(nb[16].idx.shape[1])
+    q, s, losses = p0, tr.opt.init(p0), []
+    programs = []
+    for lo, hi in ((0, 4), (4, 7)):  # a full call and a short one
+        q, s, ls = steps_with_reallocation(tr, q, s, batches[lo:hi], nb, keys[lo:hi])
+        assert ls.shape == (hi - lo,)
+        losses += [float(x) for x in ls]
+        programs.append(tr._steps._cache_size())
+    assert int(nb[16].idx.shape[1]) > tiny  # re-allocated
+    np.testing.assert_allclose(losses, single, rtol=2e-5)
+    for a, b in zip(jax.tree.leaves(p), jax.tree.leaves(q)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    assert programs[1] == programs[0]  # counts 4 and 3: one program (same capacity)
+    with pytest.raises(ValueError, match="one node count"):
+        small = {k: (v[..., :9, :] if k == "positions" else v[..., :9])
+                 for k, v in batches[1].items()}
+        steps_with_reallocation(tr, q, s, [batches[0], small], nb, keys[:2])

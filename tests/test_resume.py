@@ -5,6 +5,7 @@ run; the log continues with cumulative seconds."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import signal
 
@@ -77,7 +78,7 @@ def _assert_bit_identical(a, b):
 def test_gns_run_interrupted_twice_resumes_bit_identical(tmp_path, monkeypatch):
     write_gns_npz(tmp_path / "train.npz", _blocks())
     tcfg = TrainConfig(steps=12, batch_size=1, lr=3e-3, lr_final=3e-4, lr_decay_steps=12,
-                       log_every=3, checkpoint_every=4, validate_every=10**6)
+                       log_every=3, checkpoint_every=4, validate_every=10**6, steps_per_call=1)
 
     def run(out):
         return train_loop.train([tmp_path / "train.npz"], tmp_path / out, dict(GNS_KW), tcfg,
@@ -107,6 +108,62 @@ def test_gns_run_interrupted_twice_resumes_bit_identical(tmp_path, monkeypatch):
     assert [int(r["step"]) for r in rows] == [3, 5, 6, 7, 9, 12]
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds) and seconds[-1] > 0  # cumulative, not restarted
+
+
+def test_gns_run_of_several_steps_per_call_resumes_bit_identical(tmp_path, monkeypatch):
+    """The default path: up to ``steps_per_call`` optimiser steps per device call, grouped
+    by step (never across a log or checkpoint step, nor across a change of node count). A
+    signal during a call stops at the call's end; the resumed run regroups the same way and
+    ends bit-identical; the whole run equals the one-step-per-call run at float32
+    round-off."""
+    blocks = _blocks() + [_blocks(spacings=(0.02,), seed=1)[0]]
+    blocks[2] = Trajectory(positions=blocks[2].positions[:, :9], velocities=blocks[2]
+                           .velocities[:, :9], particle_type=blocks[2].particle_type[:9],
+                           material=blocks[2].material[:9], bounds=BOUNDS)  # 9 particles
+    write_gns_npz(tmp_path / "train.npz", blocks)
+    tcfg = TrainConfig(steps=20, batch_size=1, lr=3e-3, lr_final=3e-4, lr_decay_steps=20,
+                       log_every=10, checkpoint_every=10, validate_every=10**6,
+                       steps_per_call=4)
+    calls = []
+    real = train_loop.steps_with_reallocation
+
+    def record(trainer, params, opt, batches, *a):
+        calls.append([b["positions"].shape[2] for b in batches])
+        return real(trainer, params, opt, batches, *a)
+
+    monkeypatch.setattr(train_loop, "steps_with_reallocation", record)
+
+    def run(out, cfg=tcfg):
+        return train_loop.train([tmp_path / "train.npz"], tmp_path / out, dict(GNS_KW), cfg,
+                                progress=False)[1]
+
+    straight = run("straight")
+    ref, step = _final_state(tmp_path / "straight", straight)
+    assert step == 20 and sum(map(len, calls)) == 20
+    assert max(map(len, calls)) == 4 and all(len(set(c)) == 1 for c in calls)
+    assert {c[0] for c in calls} == {9, 16}  # both node counts drawn, never mixed in a call
+    with monkeypatch.context() as m:
+        _signal_at(m, train_loop, 5, signal.SIGTERM)  # while drawing the call 4..8
+        with pytest.raises(TrainingInterrupted) as e:
+            run("resumed")
+    stop = e.value.step
+    assert 4 < stop <= 8  # the end of the call in flight (4..8, or shorter at a node-count change)
+    assert _final_state(tmp_path / "resumed", straight)[1] == stop
+    resumed = run("resumed")
+    got, step = _final_state(tmp_path / "resumed", resumed)
+    assert step == 20
+    _assert_bit_identical(ref, got)
+    rows = list(csv.DictReader((tmp_path / "resumed" / "train_log.csv").open()))
+    assert [int(r["step"]) for r in rows] == [stop, 10, 20]
+    # one node count: the windows do not depend on the grouping, so 4 steps per call and
+    # one per call must train the same parameters (to float32 round-off)
+    write_gns_npz(tmp_path / "one.npz", _blocks())
+    one_kind = lambda out, k: train_loop.train(
+        [tmp_path / "one.npz"], tmp_path / out, dict(GNS_KW),
+        dataclasses.replace(tcfg, steps_per_call=k), progress=False)[1]
+    four, single = one_kind("four", 4), one_kind("single", 1)
+    for a, b in zip(jax.tree.leaves(single), jax.tree.leaves(four)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.slow  # ~60 s; tests/test_meshnet.py resumes a MeshGraphNet exactly at a checkpoint

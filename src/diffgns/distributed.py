@@ -146,16 +146,17 @@ def replicate(tree: T, sharding: NamedSharding | None = None) -> T:
     return jax.tree.map(lambda x: _global(x, sharding), tree)
 
 
-def shard_batch(batch: dict, sharding: NamedSharding) -> dict:
-    """Host arrays of the *global* batch (the same on every process, leading axis B) as
-    global arrays split along B by ``sharding``; each process places only the rows of its
-    own devices. B must be a multiple of the mesh size."""
+def shard_batch(batch: dict, sharding: NamedSharding, axis: int = 0) -> dict:
+    """Host arrays of the *global* batch (the same on every process; batch axis B at
+    ``axis``, 0 unless several steps' batches are stacked in front) as global arrays split
+    along B by ``sharding``; each process places only the rows of its own devices. B must be
+    a multiple of the mesh size."""
     out = {}
     n = sharding.mesh.size
     for k, v in batch.items():
         host = np.asarray(v)
-        if host.shape[0] % n:
-            raise InputError("--batch-size", f"{host.shape[0]} is not a multiple of the "
+        if host.shape[axis] % n:
+            raise InputError("--batch-size", f"{host.shape[axis]} is not a multiple of the "
                              f"{n} devices of the run",
                              f"use a multiple of {n} (the global batch is split evenly)")
         out[k] = jax.make_array_from_callback(host.shape, sharding, _rows_of(host))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def runout(x: jax.Array, origin: float = 0.0, method: str = "max", q: float = 99.0,
@@ -63,6 +64,29 @@ def deposit_front(x: jax.Array, bin_width: float, min_height: float, origin: flo
     h = deposit_profile(x, edges)
     idx = jnp.where(h >= min_height, jnp.arange(n), -1).max()
     return (idx + 1) * bin_width
+
+
+def flow_runout(x0: np.ndarray, x_final: np.ndarray, direction: int | None = None
+                ) -> tuple[float, int]:
+    """Runout of any granular flow along x, measured from the back of the initial mass.
+
+    Args:
+        x0, x_final: (N, d) initial and final positions, m.
+        direction: +1 (flow to +x), -1 (to -x), or None: the side whose front advanced
+            farther (give the reference's direction when scoring a prediction).
+    Returns:
+        (runout m, direction): ``max x_final - min x0`` to +x, ``max x0 - min x_final`` to
+        -x. For a column collapsing away from a wall it is the usual runout from the wall
+        (up to the particles' half-spacing at the wall); for a mass in the open, mirrored
+        or against an obstacle it is the same definition, whichever way it flows.
+    """
+    x0, xf = np.asarray(x0)[:, 0], np.asarray(x_final)[:, 0]
+    if direction is None:
+        direction = 1 if xf.max() - x0.max() >= x0.min() - xf.min() else -1
+    if direction not in (1, -1):
+        raise ValueError(f"direction must be +1, -1 or None, got {direction!r}")
+    run = xf.max() - x0.min() if direction == 1 else x0.max() - xf.min()
+    return float(run), int(direction)
 
 
 def kinetic_energy(v: jax.Array, mass: jax.Array) -> jax.Array:

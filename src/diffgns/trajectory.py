@@ -33,6 +33,8 @@ class Trajectory:
             :class:`~diffgns.clamp.ClampCount`), or None when the trajectory was not made by a
             simulator (a dataset, a reference file).
         clamp_shift: (T,) largest distance a clamp moved a position in each frame, m, or None.
+        obstacles: box obstacles ``((x0, y0, x1, y1), ...)`` of the scene, m (static; empty
+            when the trajectory records none).
     """
 
     positions: jax.Array
@@ -43,6 +45,7 @@ class Trajectory:
     bounds: tuple = struct.field(pytree_node=False, default=((0.0, 1.0), (0.0, 1.0)))
     clamped: jax.Array | None = None
     clamp_shift: jax.Array | None = None
+    obstacles: tuple = struct.field(pytree_node=False, default=())
 
     @property
     def n_frames(self) -> int:

@@ -50,17 +50,36 @@ def _train(args) -> int:
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
                        push_forward=args.push_forward, momentum_weight=args.momentum_weight,
                        seed=args.seed, validate_every=args.validate_every,
-                       checkpoint_every=args.checkpoint_every)
+                       checkpoint_every=args.checkpoint_every,
+                       steps_per_call=args.steps_per_call or TrainConfig.steps_per_call)
     gns_kw = dict(radius=args.radius, latent=args.latent, mp_steps=args.mp_steps,
                   mlp_layers=args.mlp_layers, noise_std=args.noise_std,
-                  attention=args.attention)
+                  attention=args.attention, use_obstacles=args.obstacle_features)
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
-          frame_stride=args.frame_stride, init_from=args.init_from)
+          frame_stride=args.frame_stride, init_from=args.init_from, pad_to=args.pad_nodes,
+          family_weights=_weights(args.family_weights))
     from diffgns.distributed import is_main
 
     if is_main():
         print(f"model written to {args.out}/model")
     return 0
+
+
+def _weights(text: str | None) -> dict | None:
+    """``"squares=1,columns=2"`` -> {"squares": 1.0, "columns": 2.0}."""
+    if not text:
+        return None
+    from diffgns.errors import InputError
+
+    out = {}
+    for item in text.split(","):
+        name, _, w = item.partition("=")
+        try:
+            out[name.strip()] = float(w)
+        except ValueError:
+            raise InputError("--family-weights", f"{item!r} is not family=weight",
+                             "e.g. --family-weights squares=1,columns=2") from None
+    return out
 
 
 def _train_mesh(args) -> int:
@@ -160,6 +179,19 @@ def register(sub) -> None:
                    help="steps between validation rollouts, count (default 2000)")
     t.add_argument("--checkpoint-every", type=count, default=500,
                    help="steps between checkpoints, count (default 500)")
+    t.add_argument("--steps-per-call", type=count, default=None,
+                   help="particles: optimiser steps per device call (default: TrainConfig's; "
+                        "XLA's CPU runtime maps its temporary buffer once per call, so several "
+                        "steps per call are faster; 1 = one step per call)")
+    t.add_argument("--pad-nodes", type=count, default=1,
+                   help="particles, datasets with scene families: pad each window's node count "
+                        "up to a multiple of this (fewer compiled programs; default 1 = none)")
+    t.add_argument("--family-weights", default=None, metavar="F=W,...",
+                   help="particles, datasets with scene families: sampling weight per family, "
+                        "e.g. squares=1,columns=2 (default equal)")
+    t.add_argument("--obstacle-features", action="store_true",
+                   help="particles: give the network the distance and normal to the nearest "
+                        "box obstacle (datasets that record obstacles, e.g. --kind granular)")
     t.add_argument("--init-from", default=None,
                    help="model folder to fine-tune from (same configuration, fresh optimiser)")
     t.add_argument("--no-viscosity", action="store_true",

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diffgns.graph.geometry import obstacle_array, walls_array
 from diffgns.io.dataset import compute_statistics, iter_dataset, read_metadata
 from diffgns.io.npz import load_gns_npz
 from diffgns.trajectory import Trajectory
@@ -54,7 +55,8 @@ def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajec
         first[cid[::-1]] = np.arange(len(cid))[::-1]
         ptype, mat = ptype[first], mat[first]
     return Trajectory(positions=pos, velocities=vel, particle_type=ptype, material=mat,
-                      frame_dt=traj.frame_dt * frame_stride, bounds=traj.bounds)
+                      frame_dt=traj.frame_dt * frame_stride, bounds=traj.bounds,
+                      obstacles=traj.obstacles)
 
 
 def load_trajectories(path: str | Path, factor: int = 1, frame_stride: int = 1
@@ -77,13 +79,17 @@ def frame_statistics(trajs: list[Trajectory]) -> dict:
 
 @dataclass
 class WindowSampler:
-    """Random windows of ``history + 2 + unroll`` frames, one node-count group per batch."""
+    """Random windows of ``history + 2 + unroll`` frames, one node-count group per batch,
+    each with the walls and box obstacles of its trajectory (``Trajectory.bounds``,
+    ``Trajectory.obstacles``), the obstacles padded to the most any trajectory has
+    (:data:`diffgns.graph.geometry.PARKED`)."""
 
     trajs: list
     history: int = 5
     unroll: int = 0
 
     def __post_init__(self):
+        self.max_obstacles = max([len(getattr(t, "obstacles", ())) for t in self.trajs] + [0])
         self.groups: dict[int, list[int]] = {}
         for i, t in enumerate(self.trajs):
             self.groups.setdefault(t.n_particles, []).append(i)
@@ -97,22 +103,30 @@ class WindowSampler:
         self._p = sizes / sizes.sum()
         self._keys = list(self.groups)
 
-    def sample(self, rng: np.random.Generator, batch: int) -> dict:
-        """A batch: positions (B, L, N, 2), particle_type (B, N), material (B, N)."""
-        n = self._keys[rng.choice(len(self._keys), p=self._p)]
+    def sample(self, rng: np.random.Generator, batch: int,
+               group_rng: np.random.Generator | None = None) -> dict:
+        """A batch: positions (B, L, N, 2), particle_type (B, N), material (B, N), walls
+        (B, 2, 2) m, obstacles (B, K, 4) m. The node-count group is drawn from
+        ``group_rng`` when given (several steps drawn with one such generator share a group,
+        so they run in one device call), else from ``rng``."""
+        n = self._keys[(group_rng or rng).choice(len(self._keys), p=self._p)]
         return self.windows(rng, self.groups[n], batch)
 
     def windows(self, rng: np.random.Generator, members: list[int], batch: int) -> dict:
         """``batch`` random windows of the trajectories ``members`` (one node count)."""
-        pos, ptype, mat = [], [], []
+        pos, ptype, mat, walls, obs = [], [], [], [], []
         for _ in range(batch):
             t = self.trajs[members[rng.integers(len(members))]]
             x, p, m = self.window(t, int(rng.integers(0, t.n_frames - self.length + 1)))
             pos.append(x)
             ptype.append(p)
             mat.append(m)
+            walls.append(walls_array(t.bounds))
+            obs.append(obstacle_array(getattr(t, "obstacles", ()), self.max_obstacles))
+        dtype = pos[0].dtype
         return dict(positions=np.stack(pos), particle_type=np.stack(ptype),
-                    material=np.stack(mat))
+                    material=np.stack(mat), walls=np.stack(walls).astype(dtype),
+                    obstacles=np.stack(obs).astype(dtype))
 
     def window(self, t: Trajectory, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The window of ``t`` from frame ``start``: positions (L, N, 2), particle_type

@@ -1,7 +1,9 @@
 """Roll a trained GNS out on reference trajectories and score it.
 
 Metrics (against the reference, e.g. the MPM trajectory the GNS starts from):
-runout error |L_gns - L_ref| / (L_ref - x_wall) of the farthest particle at the last frame,
+runout error |L_gns - L_ref| / (L_ref - x_wall) of the farthest particle at the last frame
+(columns against the left wall), the same from the back of the initial mass in the flow's
+direction for any scene (``flow_runout_*``, :func:`diffgns.metrics.flow_runout`),
 mean particle position error at the last frame relative to the mean reference displacement,
 position MSE at horizons 1, 10, 50, 100 and the full rollout, and the final kinetic energy.
 """
@@ -23,11 +25,13 @@ def reference_inputs(gns: GNS, network, ref: Trajectory, extra_capacity: int = 0
                      ) -> tuple[GNSParams, GNSState, int]:
     """Rollout inputs from the first ``history + 1`` frames of ``ref``: ``(GNSParams (network,
     material (N,) of ``ref``), initial GNSState (history (N, C+1, 2) m, allocated neighbour
-    list), number of frames to predict)`` (outside jit: allocates)."""
+    list, ``ref``'s walls and obstacles), number of frames to predict)`` (outside jit:
+    allocates). ``gns`` must be built for ``ref``'s box (:meth:`GNS.for_box`)."""
     C = gns.config.history
     pos = jnp.asarray(ref.positions)
     state = gns.init(jnp.swapaxes(pos[: C + 1], 0, 1), jnp.asarray(ref.particle_type),
-                     extra_capacity=extra_capacity)
+                     extra_capacity=extra_capacity,
+                     geometry=gns.geometry(ref.obstacles, bounds=ref.bounds))
     return GNSParams(network, jnp.asarray(ref.material)), state, pos.shape[0] - C - 1
 
 
@@ -40,6 +44,7 @@ def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = 
     rollout, or None when ``timed`` is False and the rollout runs once).
     """
     C = gns.config.history
+    gns = gns.for_box(ref.bounds)  # the reference's box (the walls the network sees)
     pos = jnp.asarray(ref.positions)
     params, state, n_all = reference_inputs(gns, network, ref)
     n_steps = n_all if n_steps is None else n_steps
@@ -82,6 +87,11 @@ def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | Non
     for h in HORIZONS:
         if start + h < T:
             out[f"mse_{h}"] = float(mse[start + h])
+    # any flow, either direction: runout from the back of the initial mass (metrics)
+    back_r, direction = metrics.flow_runout(xr[0], xr[-1])
+    back_p, _ = metrics.flow_runout(xr[0], xp[-1], direction)
+    out.update(flow_direction=direction, flow_runout_ref_m=back_r, flow_runout_pred_m=back_p,
+               flow_runout_rel_error=float(abs(back_p - back_r) / max(back_r, 1e-12)))
     (x0, x1), (y0, y1) = ref.bounds
     out["inside_domain"] = bool(((xp[..., 0] >= x0 - 1e-6) & (xp[..., 0] <= x1 + 1e-6)
                                  & (xp[..., 1] >= y0 - 1e-6) & (xp[..., 1] <= y1 + 1e-6)).all())

@@ -132,10 +132,13 @@ def velocities(history: jax.Array) -> jax.Array:
     return history[:, 1:] - history[:, :-1]
 
 
-def wall_distances(x: jax.Array, bounds, radius: float) -> jax.Array:
-    """(N, 2) positions -> (N, 4) ``(x - xmin, y - ymin, xmax - x, ymax - y) / R`` in [-1, 1]."""
-    lower = jnp.asarray([b[0] for b in bounds], dtype=x.dtype)
-    upper = jnp.asarray([b[1] for b in bounds], dtype=x.dtype)
+def wall_distances(x: jax.Array, walls, radius: float) -> jax.Array:
+    """(N, 2) positions -> (N, 4) ``(x - xmin, y - ymin, xmax - x, ymax - y) / R`` in [-1, 1].
+
+    ``walls``: ``((xmin, xmax), (ymin, ymax))`` m, as a tuple (static) or a (2, 2) array
+    (traced, e.g. :attr:`diffgns.graph.geometry.Geometry.walls`)."""
+    walls = jnp.asarray(walls, dtype=x.dtype)
+    lower, upper = walls[:, 0], walls[:, 1]
     d = jnp.concatenate([x - lower, upper - x], axis=-1) / radius
     return jnp.clip(d, -1.0, 1.0)
 
@@ -194,7 +197,7 @@ def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Nor
 
     Args:
         history: (N, C+1, 2) positions in m, oldest first.
-        bounds: ``((xmin, xmax), (ymin, ymax))`` in m.
+        bounds: the walls ``((xmin, xmax), (ymin, ymax))`` in m (tuple or (2, 2) array).
         radius: connectivity radius R in m.
         vel_normalizer: velocity normaliser (m/frame).
         material: optional (N,) or scalar raw material feature (tan of the friction angle);

@@ -10,6 +10,11 @@ accelerations displacements per frame^2 (m/frame^2). One GNS step advances one f
 Kinematic particles (type 3) are not integrated: they are set to a prescribed position when
 one is given and otherwise held where they are.
 
+The walls and obstacles the network sees are an input (:class:`~diffgns.graph.geometry
+.Geometry`, traced), not configuration: ``GNSConfig.bounds`` is only the default walls and
+the extent of the neighbour list's cells, so one model trains on boxes of several sizes and
+runs in one it was not trained in (:meth:`GNS.for_box`).
+
 The GNS is a :class:`diffgns.interface.Simulator`::
 
     state = gns.init(history, particle_type)          # allocates the neighbour list
@@ -32,6 +37,7 @@ import numpy as np
 
 from diffgns.clamp import ClampCount, clamp_positions
 from diffgns.graph.features import ParticleStats, edge_features, node_features
+from diffgns.graph.geometry import Geometry
 from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
 from diffgns.graph.networks import EncodeProcessDecode, init_params
 from diffgns.interface import ParticleFrame
@@ -45,8 +51,10 @@ class GNSConfig:
     """Static configuration of a particle GNS (hashable; usable as a jit static argument).
 
     Attributes:
-        bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain in m (walls for the features,
-            extent of the cell list).
+        bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain in m: the extent of the cell
+            list and the default walls (a state's or a training window's
+            :class:`~diffgns.graph.geometry.Geometry` gives the walls the network sees; every
+            wall must lie inside ``bounds``).
         radius: connectivity radius R in m (pairs with distance < R are connected).
         latent: latent width (and MLP hidden width).
         mp_steps: message-passing steps.
@@ -59,7 +67,10 @@ class GNSConfig:
         type_embed: width of the particle-type embedding.
         capacity_multiplier: neighbour-list head-room factor.
         use_material: feed the raw material feature (tan phi) as a node feature.
-        clamp_to_bounds: keep predicted positions inside ``bounds`` (the box walls), so no
+        use_obstacles: feed the distance and normal to the nearest box obstacle as node
+            features (:func:`~diffgns.graph.features.obstacle_distances`; 3 more inputs).
+        clamp_to_bounds: keep predicted positions inside the walls (of the state's
+            geometry), so no
             particle ever leaves the domain however inaccurate the network. Never silent:
             every position moved is counted in :attr:`GNSState.clamp` and reported per frame
             (``ParticleFrame.clamp``; :mod:`diffgns.clamp`).
@@ -78,6 +89,7 @@ class GNSConfig:
     capacity_multiplier: float = 1.25
     use_material: bool = True
     clamp_to_bounds: bool = True
+    use_obstacles: bool = False
 
     def __post_init__(self):
         bounds = tuple((float(lo), float(hi)) for lo, hi in self.bounds)
@@ -120,6 +132,8 @@ class GNSState(NamedTuple):
         t: int32 scalar, frames advanced since :meth:`GNS.init`.
         clamp: :class:`~diffgns.clamp.ClampCount` of the last frame (positions the domain
             clamp moved, largest move in m).
+        geometry: :class:`~diffgns.graph.geometry.Geometry` the network sees (walls,
+            obstacles; traced); None: the config's box, no obstacle.
     """
 
     history: jax.Array
@@ -128,6 +142,7 @@ class GNSState(NamedTuple):
     kinematic: jax.Array | None
     t: jax.Array
     clamp: ClampCount
+    geometry: Geometry | None = None
 
 
 class GNS:
@@ -150,6 +165,29 @@ class GNS:
         self.neighbors = NeighborBuilder(config.bounds, config.radius,
                                          config.capacity_multiplier)
 
+    def for_box(self, bounds) -> GNS:
+        """This GNS (same network, normaliser and frame) with the neighbour-list extent and
+        default walls of another box ``((xmin, xmax), (ymin, ymax))`` m, e.g. a longer one
+        than training's; ``self`` if it is the same box."""
+        bounds = tuple((float(lo), float(hi)) for lo, hi in bounds)
+        if bounds == self.config.bounds:
+            return self
+        return GNS(dataclasses.replace(self.config, bounds=bounds), self.normalizer,
+                   self.frame_dt)
+
+    def geometry(self, obstacles=(), pad_to: int = 0, bounds=None) -> Geometry:
+        """:class:`Geometry` of the walls ``bounds`` (default the config's box) and box
+        ``obstacles`` ``[x0, y0, x1, y1]`` m (padded to ``pad_to`` rows)."""
+        return Geometry.of(self.config.bounds if bounds is None else bounds, obstacles, pad_to)
+
+    def for_scene(self, scene) -> tuple[GNS, Geometry]:
+        """(this GNS for ``scene``'s box (:meth:`for_box`), the scene's :class:`Geometry`:
+        its walls and box obstacles) -- what every scene-driven rollout (inverse, hybrid,
+        command line) hands the network."""
+        g = self.for_box(scene.domain)
+        obs = [(o.x0, o.y0, o.x1, o.y1) for o in getattr(scene, "obstacles", ())]
+        return g, g.geometry(obs)
+
     # ----------------------------------------------------------------- network
     def init_network(self, key: jax.Array, example_inputs) -> dict:
         """Network params for ``example_inputs = (history (N, C+1, 2), particle_type (N,)
@@ -168,24 +206,32 @@ class GNS:
         ptype = jax.ShapeDtypeStruct(np.shape(particle_type), jnp.int32)
         return init_params(self.network, key, nf, ptype, ef, idx, idx, mask)
 
-    def features(self, history, material, senders, receivers, mask):
-        """(node_features (N, F), edge_features (E, 3)) of a history and a graph."""
+    def features(self, history, material, senders, receivers, mask,
+                 geometry: Geometry | None = None):
+        """(node_features (N, F), edge_features (E, 3)) of a history and a graph;
+        ``geometry``: the walls and obstacles (default: the config's box, no obstacle)."""
         cfg = self.config
         if history.shape[1] != cfg.history + 1:
             raise ValueError(f"history must be (N, {cfg.history + 1}, 2), got {history.shape}")
-        nf = node_features(history, cfg.bounds, cfg.radius, self.normalizer.velocity,
-                           material if cfg.use_material else None)
+        walls = cfg.bounds if geometry is None else geometry.walls
+        obstacles = None
+        if cfg.use_obstacles:
+            obstacles = (jnp.zeros((0, 4), history.dtype) if geometry is None
+                         else geometry.obstacles)
+        nf = node_features(history, walls, cfg.radius, self.normalizer.velocity,
+                           material if cfg.use_material else None, obstacles)
         ef = edge_features(history[:, -1], senders, receivers, mask, cfg.radius)
         return nf, ef
 
     def normalized_acceleration(self, params, history, particle_type, material, senders,
-                                receivers, mask) -> jax.Array:
+                                receivers, mask, geometry: Geometry | None = None
+                                ) -> jax.Array:
         """(N, 2) network output: the normalised acceleration (what the loss compares)."""
-        nf, ef = self.features(history, material, senders, receivers, mask)
+        nf, ef = self.features(history, material, senders, receivers, mask, geometry)
         return self.network.apply(params, nf, particle_type, ef, senders, receivers, mask)
 
     def acceleration(self, params, history, particle_type, material, senders, receivers,
-                     mask) -> jax.Array:
+                     mask, geometry: Geometry | None = None) -> jax.Array:
         """(N, 2) predicted acceleration in m/frame^2 (denormalised).
 
         Args:
@@ -194,9 +240,10 @@ class GNS:
             particle_type: (N,) int.
             material: (N,) raw material feature (tan phi); ignored if not ``use_material``.
             senders, receivers, mask: (E,) graph from :func:`~diffgns.graph.neighbors.edges`.
+            geometry: walls and obstacles (:class:`Geometry`; default the config's box).
         """
         out = self.normalized_acceleration(params, history, particle_type, material,
-                                           senders, receivers, mask)
+                                           senders, receivers, mask, geometry)
         return self.normalizer.acceleration.denormalize(out)
 
     # -------------------------------------------------------------- simulation
@@ -204,8 +251,8 @@ class GNS:
         """Neighbour list for positions ``x`` (N, d) (outside jit)."""
         return self.neighbors.allocate(x, extra_capacity)
 
-    def init(self, history, particle_type, kinematic_path=None, extra_capacity: int = 0
-             ) -> GNSState:
+    def init(self, history, particle_type, kinematic_path=None, extra_capacity: int = 0,
+             geometry: Geometry | None = None) -> GNSState:
         """Initial state (outside jit: allocates the neighbour list at the current frame).
 
         Args:
@@ -214,17 +261,30 @@ class GNS:
             kinematic_path: optional (K, N, d) prescribed positions of the kinematic particles
                 for the next K frames (a rollout may then run at most K frames).
             extra_capacity: edge slots per particle above the list's head-room.
+            geometry: walls and obstacles the network sees (default :meth:`geometry`: the
+                config's box, no obstacle); walls outside the config's box are refused (the
+                neighbour list covers only that box: use :meth:`for_box`).
         """
         history = jnp.asarray(history)
+        geometry = self.geometry() if geometry is None else geometry
+        walls = np.asarray(geometry.walls)
+        box = np.asarray(self.config.bounds)
+        if np.any(walls[:, 0] < box[:, 0] - 1e-6) or np.any(walls[:, 1] > box[:, 1] + 1e-6):
+            raise ValueError(f"GNS.init: walls {walls.tolist()} m reach outside the GNS's box "
+                             f"{box.tolist()} m (its neighbour list's extent); build the GNS "
+                             "for the scene's box with gns.for_box(bounds)")
         C = self.config.history
         if history.ndim != 3 or history.shape[1] != C + 1:
             raise ValueError(f"history must be (N, {C + 1}, d), got {history.shape}")
         nbrs = self.allocate(history[:, -1], extra_capacity)
         kin = None if kinematic_path is None else jnp.asarray(kinematic_path, history.dtype)
+        geometry = Geometry(jnp.asarray(geometry.walls, history.dtype),
+                            jnp.asarray(geometry.obstacles, history.dtype))
         return GNSState(history, nbrs, jnp.asarray(particle_type, jnp.int32), kin,
-                        jnp.zeros((), jnp.int32), ClampCount.zero(history.dtype))
+                        jnp.zeros((), jnp.int32), ClampCount.zero(history.dtype), geometry)
 
-    def advance(self, network, history, particle_type, material, nbrs, kinematic_next=None):
+    def advance(self, network, history, particle_type, material, nbrs, kinematic_next=None,
+                geometry: Geometry | None = None):
         """Next positions (N, d) of one semi-implicit Euler step, the updated list, and the
         :class:`~diffgns.clamp.ClampCount` of the step.
 
@@ -232,21 +292,23 @@ class GNS:
         whether edges were dropped (sticky). Kinematic particles go to ``kinematic_next``
         (N, d) when given, else stay where they are. With ``clamp_to_bounds`` the predicted
         positions (and any prescribed kinematic position outside the box) are clipped to the
-        box and every clipped position is counted.
+        walls (of ``geometry``, default the config's box) and every clipped position is
+        counted.
         """
         n = history.shape[0]
         x = history[:, -1]
         nbrs = self.neighbors.update(x, nbrs)
         senders, receivers, mask = edges(nbrs, n)
         acc = self.acceleration(network, history, particle_type, material, senders,
-                                receivers, mask)
+                                receivers, mask, geometry)
         x_next = x + (x - history[:, -2]) + acc
         target = x if kinematic_next is None else kinematic_next
         x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
         clamp = ClampCount.zero(history.dtype)
         if self.config.clamp_to_bounds:
-            lo = jnp.asarray([b[0] for b in self.config.bounds], x_next.dtype)
-            hi = jnp.asarray([b[1] for b in self.config.bounds], x_next.dtype)
+            walls = jnp.asarray(self.config.bounds if geometry is None else geometry.walls,
+                                x_next.dtype)
+            lo, hi = walls[:, 0], walls[:, 1]
             x_next, clamp = clamp_positions(x_next, lo, hi, axis=-1)
         return x_next.astype(history.dtype), nbrs, clamp
 
@@ -258,7 +320,8 @@ class GNS:
         material = jnp.broadcast_to(jnp.asarray(params.material, state.history.dtype),
                                     state.particle_type.shape)
         x_next, nbrs, clamp = self.advance(params.network, state.history,
-                                           state.particle_type, material, state.nbrs, kin)
+                                           state.particle_type, material, state.nbrs, kin,
+                                           state.geometry)
         hist = jnp.concatenate([state.history[:, 1:], x_next[:, None]], axis=1)
         return state._replace(history=hist, nbrs=nbrs, t=state.t + 1, clamp=clamp)
 

@@ -125,9 +125,12 @@ class FamilyWindowSampler(WindowSampler):
         """Family -> probability that a batch is drawn from it."""
         return dict(zip(self._families, self._family_p.tolist()))
 
-    def sample(self, rng: np.random.Generator, batch: int) -> dict:
+    def sample(self, rng: np.random.Generator, batch: int,
+               group_rng: np.random.Generator | None = None) -> dict:
         """A batch of one family and one node count: positions (B, L, N, 2), particle_type
-        (B, N), material (B, N)."""
-        f = self._families[rng.choice(len(self._families), p=self._family_p)]
+        (B, N), material (B, N), walls, obstacles (see :meth:`WindowSampler.sample`; the
+        family and node count come from ``group_rng`` when given)."""
+        g = group_rng or rng
+        f = self._families[g.choice(len(self._families), p=self._family_p)]
         members, p = self._family_groups[f]
-        return self.windows(rng, members[rng.choice(len(members), p=p)], batch)
+        return self.windows(rng, members[g.choice(len(members), p=p)], batch)

@@ -9,8 +9,11 @@ Nothing here knows a scene family: :func:`check_scene` compares any :class:`Scen
 that record and refuses, naming the mismatch, a scene the network has never seen an input
 for:
 
-* a box other than the training box (the network's wall-distance features are relative to
-  it, and every prediction is clamped to it);
+* a box other than the training box, for a model whose folder does not list its training
+  boxes (``source.boxes``: written since the walls became a per-trajectory input of the
+  network, :mod:`diffgns.graph.geometry`). A model that lists them runs in any box (the
+  network sees a wall only within R); a box larger or smaller than every training box is a
+  warning;
 * a body that is not sand, or sand with an E, nu, rho or cohesion other than the training
   material's (the network's only material input is tan(friction angle));
 * an MPM resolution (cell size dx, particles per cell) other than the one it emulates;
@@ -147,7 +150,9 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
     src = ModelSource.from_info(info)
     why = []
     box = tuple(tuple(ax) for ax in scene.domain)
-    if not np.allclose(np.asarray(box), np.asarray(src.bounds), rtol=0, atol=1e-9):
+    boxes = (info.get("source") or {}).get("boxes")
+    if not boxes and not np.allclose(np.asarray(box), np.asarray(src.bounds), rtol=0,
+                                     atol=1e-9):
         why.append(f"its box {_fmt_box(box)} m is not the training box {_fmt_box(src.bounds)} m")
     for i, b in enumerate(scene.bodies):
         name = f"body {b.name or i}"
@@ -188,12 +193,21 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
             why.append(str(e))
     if why:
         raise UnsupportedSceneError(f"{model} cannot simulate this scene: " + "; ".join(why))
-    return SceneSupport(factor, src.frame_stride, tuple(_warnings(scene)))
+    return SceneSupport(factor, src.frame_stride, tuple(_warnings(scene, info)))
 
 
-def _warnings(scene: Scene) -> list[str]:
+def _warnings(scene: Scene, info: dict) -> list[str]:
     out = []
-    if scene.obstacles:
+    boxes = np.asarray((info.get("source") or {}).get("boxes") or [], float)
+    if len(boxes):
+        ext = np.diff(np.asarray(scene.domain, float), axis=-1)[:, 0]
+        trained = boxes[..., 1] - boxes[..., 0]  # (n_boxes, d) extents
+        if np.any(ext > trained.max(0) + 1e-9) or np.any(ext < trained.min(0) - 1e-9):
+            out.append(f"its box {_fmt_box(scene.domain)} m is outside the range of the "
+                       "training boxes' sizes (" + ", ".join(_fmt_box(b) for b in boxes)
+                       + " m); the network sees walls only within its radius, but flows "
+                       "this long or short were not in training")
+    if scene.obstacles and not info.get("gns", {}).get("use_obstacles", False):
         out.append(f"the scene has {len(scene.obstacles)} obstacle(s); the network has no "
                    "obstacle input (trained without obstacles)")
     if any(any(v != 0 for v in (b.velocity or ())) for b in scene.bodies):

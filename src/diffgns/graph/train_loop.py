@@ -22,13 +22,23 @@ import numpy as np
 from flax import serialization
 
 from diffgns.distributed import barrier, is_main, to_host
+from diffgns.errors import InputError
 from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
 from diffgns.graph.gns import GNS, GNSConfig
-from diffgns.graph.training import NeighborLists, Trainer, step_with_reallocation
+from diffgns.graph.sampling import FamilyWindowSampler
+from diffgns.graph.training import (
+    NeighborLists,
+    Trainer,
+    step_with_reallocation,
+    steps_with_reallocation,
+)
 from diffgns.models import model_dir, model_path
+
+#: third seed word of the generator that draws a block's node-count group (train's draw)
+_GROUP_STREAM = 1
 
 
 def save_model(out: Path, gns: GNS, params, info: dict) -> None:
@@ -100,6 +110,10 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     # What the data came from (e.g. the MPM resolution a hybrid must pair this model with).
     stats["source"] = {k: meta[k] for k in ("kind", "width", "cells_across", "dt", "bounds")
                        if k in meta}
+    # every training box: the network saw each trajectory's own walls (graph.geometry), so
+    # the model supports those boxes (graph.support)
+    stats["source"]["boxes"] = sorted({tuple(map(tuple, np.asarray(t.bounds, float).tolist()))
+                                       for t in trajs})
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
     cfg = GNSConfig(bounds=bounds, **gns_kw)
     frame_dt = float(trajs[0].frame_dt) if trajs else 2.5e-3
@@ -144,10 +158,44 @@ def _union_bounds(trajs):
             (float(b[:, 1, 0].min()), float(b[:, 1, 1].max())))
 
 
+def _families(train_paths) -> list[str] | None:
+    """The scene family of every training trajectory (in :func:`load_trajectories` order),
+    or None when no file records families (e.g. column or squares datasets)."""
+    from diffgns.io.families_data import read_families
+
+    out: list[str] = []
+    for p in train_paths:
+        out += list(read_families(p).values()) if Path(p).suffix != ".npz" else []
+    return out if any(out) else None
+
+
+def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int = 1,
+                 family_weights: dict | None = None) -> WindowSampler:
+    """The training windows: per scene family (equal weights unless ``family_weights``),
+    node counts padded up to a multiple of ``pad_to`` (fewer compiled programs), when
+    ``families`` names one per trajectory; else plain node-count groups."""
+    if families is None:
+        if pad_to > 1 or family_weights:
+            raise InputError("--pad-nodes/--family-weights", "the training data records no "
+                             "scene families", "use data of diffgns dataset --kind granular, "
+                             "or drop these options")
+        return WindowSampler(trajs, gns.config.history, tcfg.push_forward)
+    if len(families) != len(trajs):
+        raise ValueError(f"{len(families)} families for {len(trajs)} trajectories")
+    return FamilyWindowSampler(trajs, gns.config.history, tcfg.push_forward,
+                               families=families, weights=family_weights, pad_to=pad_to,
+                               bounds=gns.config.bounds, radius=gns.config.radius)
+
+
 def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
           factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True,
-          init_from=None):
+          init_from=None, pad_to: int = 1, family_weights: dict | None = None):
     """Train (or resume) a GNS; returns (gns, params).
+
+    Datasets that record a scene family per trajectory (``diffgns dataset --kind
+    granular``) are sampled per family (:func:`make_sampler`; ``pad_to``,
+    ``family_weights``); every window carries its trajectory's walls and obstacles
+    (:mod:`diffgns.graph.geometry`).
 
     ``init_from``: a model folder whose parameters start a fresh run (fine-tuning, e.g. with
     push-forward); its configuration must equal the one requested here, and the run keeps its
@@ -158,7 +206,8 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     gns, trajs, stats = build(train_paths, dict(gns_kw), factor, frame_stride)
     valid = load_trajectories(valid_path, factor, frame_stride)[0][:n_valid] if valid_path \
         else []
-    sampler = WindowSampler(trajs, gns.config.history, tcfg.push_forward)
+    families = _families(train_paths)
+    sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights)
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
@@ -172,22 +221,48 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     source = stats.pop("source")
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
-                frame_stride=frame_stride, source=source)
+                frame_stride=frame_stride, source=source, pad_to=pad_to,
+                family_weights=family_weights,
+                families=None if families is None else sorted(set(families)))
     if is_main():
         (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
     nbrs = NeighborLists()  # capacities checkpointed: exact resume
 
+    K = tcfg.steps_per_call
+
+    def draw(s: int):
+        # (batch, key) of step s, a function of (seed, s) alone (exact resume). The node-count
+        # group comes from a stream of its own, per block of K steps, so the steps of a block
+        # share it (one device call, update_many) and the windows are the same for any K
+        # when there is one group
+        rng, key = step_rng(tcfg.seed, s)
+        group_rng = np.random.default_rng([tcfg.seed, s - s % K, _GROUP_STREAM])
+        return sampler.sample(rng, tcfg.batch_size, group_rng), key
+
     def update(params, opt_state, step):
-        rng, key = step_rng(tcfg.seed, step)
-        batch = sampler.sample(rng, tcfg.batch_size)
+        batch, key = draw(step)
         params, opt_state, loss = step_with_reallocation(trainer, params, opt_state, batch,
                                                          nbrs, key)
         return params, opt_state, (loss,)
 
+    def update_many(params, opt_state, step, n):
+        # the batches of steps step.. step+n-1, cut where the node count changes (one
+        # device call runs one node count); a function of the step alone (exact resume)
+        batches, keys = [], []
+        for s in range(step, step + n):
+            b, key = draw(s)
+            if batches and b["positions"].shape != batches[0]["positions"].shape:
+                break
+            batches.append(b)
+            keys.append(key)
+        params, opt_state, losses = steps_with_reallocation(trainer, params, opt_state,
+                                                            batches, nbrs, keys)
+        return params, opt_state, (losses,)
+
     validate = (lambda p: evaluate(gns, p, valid)["mean"]) if valid else None
     params, opt_state, step = fit(
         update, params, trainer.opt.init(params), tcfg, out, info, ["loss"], desc="train",
-        progress=progress, validate=validate, host_state=nbrs,
+        progress=progress, validate=validate, host_state=nbrs, update_many=update_many,
         show=("runout_rel_error", "final_position_error_rel_displacement"))
     params = to_host(params)
     if is_main():

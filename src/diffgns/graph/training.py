@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 from jax_md import partition
@@ -26,6 +27,7 @@ from diffgns.graph.fit import (  # re-exported: the training API of every networ
     save_checkpoint,
     step_rng,
 )
+from diffgns.graph.geometry import Geometry
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import capacity, did_overflow, edges
 from diffgns.interface import retry_on_overflow
@@ -33,6 +35,7 @@ from diffgns.trajectory import KINEMATIC
 
 __all__ = ["NeighborLists", "TrainConfig", "Trainer", "load_checkpoint", "make_optimizer",
            "pushed_target", "save_checkpoint", "step_rng", "step_with_reallocation",
+           "steps_with_reallocation",
            "window_loss"]
 
 
@@ -54,8 +57,9 @@ def pushed_target(window, hist, unroll: int):
 
 
 def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, unroll: int,
-                momentum_weight: float):
-    """Loss of one window (L, N, 2) of positions, L = history + 2 + unroll."""
+                momentum_weight: float, geometry: Geometry | None = None):
+    """Loss of one window (L, N, 2) of positions, L = history + 2 + unroll, in the walls and
+    obstacles ``geometry`` (default: the GNS's box, no obstacle)."""
     C = gns.config.history
     clean = jnp.swapaxes(window[: C + 1], 0, 1)  # (N, C+1, 2)
     noise = random_walk_noise(key, clean, gns.config.noise_std, particle_type)
@@ -64,14 +68,15 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
     over = jnp.zeros((), bool)
     for k in range(unroll):  # push-forward: the model's own predictions, no gradient
         x_next, nb, _ = gns.advance(jax.lax.stop_gradient(params), hist, particle_type,
-                                    material, nbrs, window[C + 1 + k])
+                                    material, nbrs, window[C + 1 + k], geometry)
         over |= did_overflow(nb)
         hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
     target = pushed_target(window, hist, unroll)  # noise and push-forward drift alike
     nb = gns.neighbors.update(hist[:, -1], nbrs)
     over |= did_overflow(nb)
     s, r, m = edges(nb, n)
-    pred = gns.normalized_acceleration(params, hist, particle_type, material, s, r, m)
+    pred = gns.normalized_acceleration(params, hist, particle_type, material, s, r, m,
+                                       geometry)
     tgt = gns.normalizer.acceleration.normalize(target)
     w = (particle_type != KINEMATIC).astype(pred.dtype)
     loss = jnp.sum(w * jnp.sum((pred - tgt) ** 2, -1)) / jnp.maximum(w.sum(), 1.0)
@@ -92,16 +97,22 @@ class Trainer:
         self.mesh = data_mesh(devices)
         self.replicated = NamedSharding(self.mesh, PartitionSpec())
         self.batched = NamedSharding(self.mesh, PartitionSpec("data"))
+        self.stacked = NamedSharding(self.mesh, PartitionSpec(None, "data"))
         rep = self.replicated
         self._step = jax.jit(self._step_impl, out_shardings=(rep, rep, rep, rep))
+        self._steps = jax.jit(self._steps_impl, out_shardings=(rep, rep, rep, rep))
 
     def _batch_loss(self, params, batch, nbrs, key):
         B = batch["positions"].shape[0]
         keys = jax.random.split(key, B)
-        f = lambda w, t, m, k: window_loss(self.gns, params, w, t, m, nbrs, k,
-                                           self.cfg.push_forward, self.cfg.momentum_weight)
+        f = lambda w, t, m, k, g: window_loss(self.gns, params, w, t, m, nbrs, k,
+                                              self.cfg.push_forward, self.cfg.momentum_weight,
+                                              g)
+        geometry = None
+        if "walls" in batch:  # per-window walls (B, d, 2) and obstacles (B, K, 2d)
+            geometry = Geometry(batch["walls"], batch["obstacles"])
         losses, over = jax.vmap(f)(batch["positions"], batch["particle_type"],
-                                   batch["material"], keys)
+                                   batch["material"], keys, geometry)
         return losses.mean(), jnp.any(over)
 
     def _step_impl(self, params, opt_state, batch, nbrs, key):
@@ -109,6 +120,39 @@ class Trainer:
             params, batch, nbrs, key)
         updates, new_opt = self.opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), new_opt, loss, over
+
+    def _steps_impl(self, params, opt_state, batches, count, nbrs, keys):
+        """``count`` (traced, <= K) optimiser steps on ``batches`` (leaves (K, B, ...)) and
+        ``keys`` (K, 2) in one device call: one compiled program for every count, whose
+        temporary buffer all the steps share. Returns (params, opt_state, losses (K,),
+        overflowed (K,)); entries past ``count`` stay 0 / False."""
+        K = keys.shape[0]
+
+        def body(i, carry):
+            p, s, losses, overs = carry
+            b = jax.tree.map(lambda a: a[i], batches)
+            p, s, loss, over = self._step_impl(p, s, b, nbrs, keys[i])
+            return p, s, losses.at[i].set(loss), overs.at[i].set(over)
+
+        zeros = (jnp.zeros(K, jnp.float32), jnp.zeros(K, bool))
+        return jax.lax.fori_loop(0, count, body, (params, opt_state, *zeros))
+
+    def steps(self, params, opt_state, batches: list[dict], nbrs, keys: list):
+        """``len(batches)`` optimiser steps (at most ``cfg.steps_per_call``, one node count)
+        in one device call; the same steps as :meth:`step` in turn, at float32 round-off.
+        The list is padded to ``steps_per_call`` so that every count runs one compiled
+        program. Returns (params, opt_state, losses (k,), overflowed (k,))."""
+        k, K = len(batches), max(self.cfg.steps_per_call, len(batches))
+        pad = [batches[-1]] * (K - k)
+        stacked = {name: np.stack([np.asarray(b[name]) for b in batches + pad])
+                   for name in batches[0]}
+        keys = jnp.stack(list(keys) + [keys[-1]] * (K - k))
+        params, opt_state, nbrs, keys = replicate((params, opt_state, nbrs, keys),
+                                                  self.replicated)
+        p, s, losses, over = self._steps(params, opt_state,
+                                         shard_batch(stacked, self.stacked, axis=1),
+                                         jnp.int32(k), nbrs, keys)
+        return p, s, losses[:k], over[:k]
 
     def shard(self, batch: dict) -> dict:
         """Put the global host batch on the devices of the run, split along the batch axis
@@ -199,4 +243,32 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
         lambda nb: trainer.step(params, opt_state, batch, nb, key), nbrs[n],
         lambda out: bool(to_host(out[3])),
         lambda nb, _, k: trainer.gns.neighbors.reallocate(x, nb, k), max_retries)
+    return out[0], out[1], out[2]
+
+
+def steps_with_reallocation(trainer: Trainer, params, opt_state, batches: list[dict],
+                            nbrs: dict, keys: list, max_retries: int = 6):
+    """:meth:`Trainer.steps` (several steps, one node count, one device call) with the
+    overflow rule of :func:`step_with_reallocation`: if any step of the call overflowed, the
+    list is re-allocated for the positions of the first that did and the whole call is redone
+    from the same inputs. Returns (params, opt_state, losses (k,))."""
+    C = trainer.gns.config.history
+    n = {b["positions"].shape[2] for b in batches}
+    if len(n) != 1:
+        raise ValueError(f"steps_with_reallocation needs one node count, got {sorted(n)}")
+    n = n.pop()
+    xs = [jnp.asarray(b["positions"][0, C]) for b in batches]
+    if isinstance(nbrs, NeighborLists):
+        nbrs.get_or_allocate(trainer.gns, xs[0])
+    elif n not in nbrs:
+        nbrs[n] = trainer.gns.allocate(xs[0])
+
+    def first_bad(out) -> int:
+        return int(np.argmax(np.asarray(to_host(out[3]))))
+
+    out, nbrs[n] = retry_on_overflow(
+        lambda nb: trainer.steps(params, opt_state, batches, nb, keys), nbrs[n],
+        lambda out: bool(np.any(to_host(out[3]))),
+        lambda nb, out, k: trainer.gns.neighbors.reallocate(xs[first_bad(out)], nb, k),
+        max_retries)
     return out[0], out[1], out[2]

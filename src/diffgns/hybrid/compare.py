@@ -109,7 +109,8 @@ def make_hybrid(scene, gns, info: dict, schedule: Schedule, resolution: str = "e
     refuses a scene the model does not support, naming why (``resolution``: see
     :func:`~diffgns.graph.support.check_scene`)."""
     sup = check_scene(scene, info, resolution, model)
-    return Hybrid(MPM(scene), gns, sup.frame_stride, sup.factor, schedule)
+    gns, geometry = gns.for_scene(scene)  # the scene's walls and obstacles
+    return Hybrid(MPM(scene), gns, sup.frame_stride, sup.factor, schedule, geometry=geometry)
 
 
 def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: int,

@@ -196,15 +196,19 @@ class Hybrid:
         frame_stride: MPM frames per GNS frame.
         factor: particles per node (coarse-graining of the initial particles).
         schedule: :class:`Schedule`.
+        geometry: the walls and obstacles the network sees
+            (:class:`~diffgns.graph.geometry.Geometry`; default ``gns``'s box, no obstacle;
+            :meth:`GNS.for_scene <diffgns.graph.gns.GNS.for_scene>` gives both for a scene).
     """
 
     def __init__(self, mpm, gns: GNS, frame_stride: int, factor: int,
-                 schedule: Schedule = Schedule()):
+                 schedule: Schedule = Schedule(), geometry=None):
         if gns.config.history > schedule.warmup and schedule.gns_frames > 0:
             raise ValueError(f"Schedule.warmup = {schedule.warmup} frames is shorter than the "
                              f"GNS history ({gns.config.history}): the first GNS frame would "
                              "see a made-up velocity history")
         self.mpm, self.gns = mpm, gns
+        self.geometry = gns.geometry() if geometry is None else geometry
         self.stride, self.schedule = int(frame_stride), schedule
         x0 = np.asarray(mpm.init().x).T
         cid = coarse_grain_map(x0, factor)
@@ -312,7 +316,7 @@ class Hybrid:
         hist = s.history
         x = hist[:, -1]
         x_next, nbrs, node_clamp = self.gns.advance(params.network, hist, self.node_type,
-                                                    material, s.nbrs)
+                                                    material, s.nbrs, None, self.geometry)
         x_next = x_next.astype(hist.dtype)
         snd, rcv, msk = edges(nbrs, x.shape[0])
         disp = x_next - x

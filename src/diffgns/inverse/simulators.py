@@ -97,12 +97,15 @@ class GNSSimulator:
             :meth:`reallocate`.
         material: ``theta -> (n,) or scalar`` material feature (default
             ``tan(theta["friction_angle"])``).
+        geometry: the walls and obstacles the network sees
+            (:class:`~diffgns.graph.geometry.Geometry`; default the GNS's box, no obstacle).
     """
 
     def __init__(self, gns, network, history, particle_type, n_steps: int,
                  checkpoint_block: int | None = 10, extra_capacity: int = 4,
-                 material: Callable | None = None):
+                 material: Callable | None = None, geometry=None):
         self.gns, self.network = gns, network
+        self.geometry = geometry  # walls and obstacles (None: the GNS's box, no obstacle)
         self.C = gns.config.history
         self._history = history if callable(history) else None
         self._fixed = None if callable(history) else jnp.asarray(history)
@@ -130,7 +133,8 @@ class GNSSimulator:
         outside jit)."""
         hist = jnp.swapaxes(self.history(theta), 0, 1)
         self.state = self.gns.init(hist, self.particle_type,
-                                   extra_capacity=self.extra_capacity)
+                                   extra_capacity=self.extra_capacity,
+                                   geometry=self.geometry)
 
     def _inputs(self, theta):
         if self.state is None:
@@ -178,7 +182,9 @@ class HybridSimulator:
 
         self.obs, self.network = obs, network
         self.schedule = schedule or Schedule(warmup=5, gns_frames=10, mpm_frames=2)
-        self.hybrid = Hybrid(obs.mpm, gns, obs.frame_stride, obs.coarse_grain, self.schedule)
+        gns, geometry = gns.for_scene(obs.scene)  # the scene's walls and obstacles
+        self.hybrid = Hybrid(obs.mpm, gns, obs.frame_stride, obs.coarse_grain, self.schedule,
+                             geometry=geometry)
         self.checkpoint_block = checkpoint_block
         self.n_frames = obs.n_obs - 1
         self.state = self.hybrid.init(obs.state, extra_capacity)
@@ -281,6 +287,7 @@ def gns_simulator(obs: SceneObservation, model=DEFAULT_MODEL, history="observed"
     loaded = loaded or load_gns(model)
     check_model(obs, loaded, model)
     gns, network, _ = loaded
+    gns, geometry = gns.for_scene(obs.scene)  # the scene's walls and obstacles
     C = gns.config.history
     if history == "observed":
         if observed is None:
@@ -294,7 +301,7 @@ def gns_simulator(obs: SceneObservation, model=DEFAULT_MODEL, history="observed"
         raise ValueError(f"history must be 'observed' or 'mpm', got {history!r}")
     n_steps = obs.n_obs - (C + 1) if n_steps is None else n_steps
     return GNSSimulator(gns, network, hist, obs.node_type, n_steps, checkpoint_block,
-                        material=obs.node_material)
+                        material=obs.node_material, geometry=geometry)
 
 
 def hybrid_simulator(obs: SceneObservation, model=DEFAULT_MODEL, loaded=None,

@@ -308,9 +308,12 @@ class DatasetWriter(H5TrajectoryFile):
                         velocity=np.asarray(traj.velocities, dtype=np.float32),
                         particle_type=np.asarray(traj.particle_type, dtype=np.int32),
                         material_property=np.asarray(traj.material, dtype=np.float32))
+        extra = dict(attrs or {})
+        if traj.obstacles and "obstacles" not in extra:  # the scene's box obstacles, m
+            extra["obstacles"] = np.asarray(traj.obstacles, float).reshape(-1, 4)
         self._store(key, datasets, dict(
             frame_dt=float(traj.frame_dt),
-            bounds=np.asarray(traj.bounds, dtype=float).reshape(2, 2), **(attrs or {})))
+            bounds=np.asarray(traj.bounds, dtype=float).reshape(2, 2), **extra))
 
     def finalize(self, connectivity_radius: float) -> dict:
         """Compute the statistics and write ``<stem>.metadata.json`` (:func:`metadata_path`).
@@ -356,10 +359,12 @@ def read_metadata(path: str | Path) -> dict:
     return json.loads(path.read_text())
 
 
-def _make_trajectory(pos, vel, ptype, mat, frame_dt: float, bounds: tuple) -> Trajectory:
+def _make_trajectory(pos, vel, ptype, mat, frame_dt: float, bounds: tuple,
+                     obstacles: tuple = ()) -> Trajectory:
     return Trajectory(positions=jnp.asarray(pos), velocities=jnp.asarray(vel),
                       particle_type=jnp.asarray(ptype, dtype=jnp.int32),
-                      material=jnp.asarray(mat), frame_dt=frame_dt, bounds=bounds)
+                      material=jnp.asarray(mat), frame_dt=frame_dt, bounds=bounds,
+                      obstacles=obstacles)
 
 
 def _read_group(path: Path, key: str, grp: h5py.Group, meta: dict | None) -> Trajectory:
@@ -385,7 +390,9 @@ def _read_group(path: Path, key: str, grp: h5py.Group, meta: dict | None) -> Tra
     _require(vel.shape == pos.shape, f"{where}: 'velocity' must be {pos.shape}, got {vel.shape}")
     mat = (_as_material(grp["material_property"][()], n, where) if "material_property" in grp
            else np.zeros((n,), dtype=pos.dtype))
-    return _make_trajectory(pos, vel, ptype, mat, frame_dt, bounds)
+    obs = np.asarray(grp.attrs.get("obstacles", np.zeros((0, 4))), float).reshape(-1, 4)
+    return _make_trajectory(pos, vel, ptype, mat, frame_dt, bounds,
+                            tuple(tuple(float(c) for c in o) for o in obs))
 
 
 def iter_dataset(path: str | Path, keys: Sequence[str] | None = None) -> Iterator[Trajectory]:
