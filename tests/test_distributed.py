@@ -96,8 +96,9 @@ def test_column_shards_are_whole_vmap_batches():
 
 
 # ----------------------------------------------------------------------- training
-# slow: 437.6 s measured at 1-minute load ~20 on 2 cores (two GNS compilations in parallel
-# plus the one-process reference); `make test-distributed` runs it
+# slow (the default suite is over its budget): `make test-distributed` runs this file's 11
+# tests in 125 s on this 2-core machine with nothing else running (2026-12-03 11:30 UTC;
+# 437.6 s for this test alone at load ~20)
 @pytest.mark.slow
 def test_two_processes_train_like_one_process(tmp_path):
     """Two processes (one CPU device each, the batch of 2 split one window per process,
@@ -158,8 +159,8 @@ def sharded(tmp_path_factory):
     return d, seconds
 
 
-# slow: its fixture took 684 s at 1-minute load ~22 on 2 cores (two processes: 417 s; the
-# one-process reference: 4.4 min); `make test-distributed` runs it
+# slow: see above (`make test-distributed`, 125 s for the file on a quiet machine; this
+# fixture took 684 s at load ~22)
 @pytest.mark.slow
 def test_two_process_dataset_equals_one_process(sharded):
     d, seconds = sharded

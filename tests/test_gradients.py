@@ -120,6 +120,7 @@ def test_gradient_finite_through_1000_substeps_of_sand(dtype, x64):
     assert la.safe_norm(gs.x.reshape(-1)[None], axis=1) > 0
 
 
+@pytest.mark.slow  # 28 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_gradients_wrt_density_poisson_velocity_and_geometry(x64):
     """value_and_grad and jvp w.r.t. rho, nu, a per-body initial velocity and the column's
     aspect ratio (a vertical stretch of the initial particles and their volumes)."""

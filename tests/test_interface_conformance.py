@@ -177,6 +177,7 @@ def test_gradient_finite_and_checkpointed_equals_plain(case):
         assert np.isfinite(np.asarray(x)).all()
 
 
+@pytest.mark.slow  # 32 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_mpm_substep_checkpointing_changes_nothing_but_memory(x64):
     """float64, tight: in float32 the sand return map amplifies the recomputation's round-off
     (which is why the float32 battery compares checkpointed and plain per field scale)."""

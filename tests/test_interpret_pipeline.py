@@ -151,6 +151,7 @@ def _loaded(fn):
         busy.wait()
 
 
+@pytest.mark.slow  # 23 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_symbolic_command_spring_is_reproducible_under_load(tmp_path):
     """Fast variant: the spring law twice, the second time beside a busy process."""
     first = _symbolic(tmp_path, "a", "spring")

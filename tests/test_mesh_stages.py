@@ -34,6 +34,7 @@ def test_one_frame_unroll_is_the_one_step_loss():
     np.testing.assert_allclose(float(a), float(b), rtol=2e-6)
 
 
+@pytest.mark.slow  # 47 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_unrolled_loss_backpropagates_through_the_rollout():
     """K = 2: the value is the mean of two one-step errors, the second from the model's own
     first prediction; its gradient differs from the one with the rollout's carry stopped."""

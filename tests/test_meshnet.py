@@ -130,6 +130,7 @@ def _synthetic_dataset(path, n_traj=2, frames=12):
         w.finalize()
 
 
+@pytest.mark.slow  # 44 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_training_on_a_dataset_learns_and_resumes_exactly(tmp_path):
     from diffgns.graph.training import TrainConfig
     from diffgns.mesh import train as mesh_train

@@ -201,6 +201,7 @@ def test_block_slides_down_tilted_floor_3d():
     assert abs(x[-1, 2] - x[0, 2]) < 1e-5
 
 
+@pytest.mark.slow  # 33 s in the full suite beside a 2-process CFD job (2026-12-03)
 def test_jit_equals_eager_3d():
     scene = block3d(material=Sand(), walls=Walls.all("friction", 0.3),
                     obstacles=(BoxObstacle(0.16, 0.0, 0.2, 0.04, z0=0.0, z1=0.22),))

@@ -146,12 +146,12 @@ class Trainer:
         pad = [batches[-1]] * (K - k)
         stacked = {name: np.stack([np.asarray(b[name]) for b in batches + pad])
                    for name in batches[0]}
-        keys = jnp.stack(list(keys) + [keys[-1]] * (K - k))
-        params, opt_state, nbrs, keys = replicate((params, opt_state, nbrs, keys),
-                                                  self.replicated)
+        key_stack = jnp.stack(list(keys) + [keys[-1]] * (K - k))
+        params, opt_state, nbrs, key_stack = replicate((params, opt_state, nbrs, key_stack),
+                                                       self.replicated)
         p, s, losses, over = self._steps(params, opt_state,
                                          shard_batch(stacked, self.stacked, axis=1),
-                                         jnp.int32(k), nbrs, keys)
+                                         jnp.int32(k), nbrs, key_stack)
         return p, s, losses[:k], over[:k]
 
     def shard(self, batch: dict) -> dict:

@@ -53,6 +53,15 @@ TRAIN_RE = (100.0, 125.0, 150.0, 175.0, 200.0, 225.0, 250.0)
 HELDOUT_RE = (110.0, 165.0, 220.0, 85.0, 275.0)
 
 
+def sweep_run(n_frames: int = 201, frame_dt: float = 0.02, spinup: float = 20.0
+              ) -> CylinderRun:
+    """The CFD run of every sweep trajectory: ``n_frames`` frames ``frame_dt`` s apart after
+    ``spinup`` D / Ubar, the coarse mesh, a spin pulse of peak surface speed Ubar over 0.3 s,
+    and the sweep's time step (:data:`SWEEP_CFL`). ValueError on invalid values."""
+    return CylinderRun(n_frames=n_frames, frame_dt=frame_dt, spinup=spinup, kick=1.0,
+                       kick_time=0.3, cfl=SWEEP_CFL, **COARSE_MESH)
+
+
 @dataclass(frozen=True)
 class Sweep:
     """A Reynolds-number sweep (SI units).
@@ -71,9 +80,7 @@ class Sweep:
     center: tuple[float, float] = (0.2, 0.2)
     length: float = 2.2
     height: float = 0.41
-    run: CylinderRun = field(default_factory=lambda: CylinderRun(
-        n_frames=201, frame_dt=0.02, spinup=20.0, kick=1.0, kick_time=0.3, cfl=SWEEP_CFL,
-        **COARSE_MESH))
+    run: CylinderRun = field(default_factory=lambda: sweep_run())
 
     def __post_init__(self):
         re = tuple(float(r) for r in self.reynolds)
@@ -148,8 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="CFD processes (one core each)")
     a = p.parse_args(argv)
     try:
-        run = CylinderRun(n_frames=a.frames, frame_dt=a.frame_dt, spinup=a.spinup, kick=1.0,
-                          kick_time=0.3, **COARSE_MESH)
+        run = sweep_run(a.frames, a.frame_dt, a.spinup)
     except ValueError as e:
         raise InputError("--frames/--frame-dt/--spinup", str(e)) from None
     def stop(signum, frame):
