@@ -267,3 +267,18 @@ def test_training_on_two_boxes_with_families_obstacles_and_padding(tmp_path, mon
     assert info["families"] == ["obstacles", "squares"] and info["gns"]["use_obstacles"]
     assert gns.config.bounds == ((0.0, 0.8), (0.0, 0.5))  # the union: the cell list's extent
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params))
+    # the per-family held-out table of the benchmark script, on the same files: each case
+    # rolled out in its own box with its obstacles
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import granular_heldout
+
+    granular_heldout.main(["--model", str(tmp_path / "run" / "model"), "--data",
+                           str(tmp_path / "g.h5"), "--out", str(tmp_path / "h.json")])
+    out = json.loads((tmp_path / "h.json").read_text())
+    assert set(out["table"]) == {"squares", "obstacles", "all"}
+    assert out["table"]["squares"]["cases"] == 3 and out["table"]["all"]["cases"] == 4
+    assert [r["family"] for r in out["rows"]] == ["squares", "squares", "obstacles", "squares"]
+    assert all(r["finite"] and r["inside_domain"] for r in out["rows"])

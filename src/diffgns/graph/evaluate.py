@@ -122,3 +122,36 @@ def evaluate(gns: GNS, network, refs: list[Trajectory], n_steps: int | None = No
 
 def _cut(ref: Trajectory, T: int) -> Trajectory:
     return ref.replace(positions=ref.positions[:T], velocities=ref.velocities[:T])
+
+
+#: held-out targets of the general granular model (issue 21), per case
+TARGETS = dict(flow_runout_rel_error=0.05, final_position_error_rel_displacement=0.05)
+
+
+def per_family(rows: list[dict], families: list[str], targets: dict | None = None) -> dict:
+    """Per-family summary of :func:`evaluate` rows (one family name per row, in order).
+
+    For each family: case count, mean and max of every target metric (default
+    :data:`TARGETS`), how many cases are outside the domain or not finite, the largest final
+    kinetic energy (J/kg), and ``met``: every case within every target, inside, finite.
+    A key ``"all"`` summarises every row. ValueError when the lengths differ.
+    """
+    targets = TARGETS if targets is None else targets
+    if len(rows) != len(families):
+        raise ValueError(f"per_family: {len(rows)} rows for {len(families)} family names")
+    out = {}
+    for fam in [*dict.fromkeys(families), "all"]:
+        mine = [r for r, f in zip(rows, families) if fam in ("all", f)]
+        entry: dict = dict(cases=len(mine))
+        ok = True
+        for k, limit in targets.items():
+            vals = np.array([r[k] for r in mine], float)
+            entry[f"{k}_mean"], entry[f"{k}_max"] = float(vals.mean()), float(vals.max())
+            ok &= bool(np.all(vals <= limit))
+        entry["outside_domain"] = sum(not r.get("inside_domain", True) for r in mine)
+        entry["not_finite"] = sum(not r.get("finite", True) for r in mine)
+        entry["final_kinetic_energy_per_kg_max"] = float(max(
+            r.get("final_kinetic_energy_per_kg", 0.0) for r in mine))
+        entry["met"] = ok and entry["outside_domain"] == 0 and entry["not_finite"] == 0
+        out[fam] = entry
+    return out
