@@ -119,10 +119,14 @@ granular-test-data: $(VENV)/.installed-test
 # issue 23: the MeshGraphNet task this machine can learn (docs/guides/meshnet.md "Reynolds
 # sweep"): one cylinder, one ~1,300-vertex mesh, Re 100-250 for training, 5 held-out Re
 # (3 between, 2 outside); two CFD processes per file, each file resumable.
-# meshnet-train resumes the run from the committed checkpoint (checkpoints/meshnet_sweep/)
-# and stops cleanly on SIGTERM (rerun to resume); meshnet-eval prints the targets table.
-MESHNET_RUN ?= runs/meshnet_sweep
-MESHNET_STAGES ?= 1000:0.003:1,3000:0.0015:1,20000:0.0005:4
+# meshnet-train resumes the run from its committed checkpoint (checkpoints/<run name>/, e.g.
+# checkpoints/meshnet_halving for runs/meshnet_halving) and stops cleanly on SIGTERM (rerun
+# to resume); meshnet-eval prints the targets table. The default run is the noise-halving
+# lever; the unrolled lever: make meshnet-train MESHNET_RUN=runs/meshnet_unroll
+# MESHNET_STAGES=1000:0.003:1,20000:0.0005:4
+MESHNET_RUN ?= runs/meshnet_halving
+MESHNET_STAGES ?= 1000:0.003:1,3000:0.0015:1,6000:0.00075:1,20000:0.0004:1
+MESHNET_CKPT = checkpoints/$(notdir $(MESHNET_RUN))
 MESHNET_NET ?= --latent 32 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5 \
 	--checkpoint-every 100
 .PHONY: meshnet-data meshnet-train meshnet-eval
@@ -134,9 +138,9 @@ meshnet-data: $(VENV)/.installed-test
 
 meshnet-train: $(VENV)/.installed-test
 	@test -f data/sweep_train.h5 || { echo "data/sweep_train.h5 missing: make meshnet-data"; exit 2; }
-	@# a new run folder starts from the committed checkpoint when there is one
-	test -e $(MESHNET_RUN)/checkpoint.json || ! test -d checkpoints/meshnet_sweep || \
-		{ mkdir -p $(MESHNET_RUN) && cp -r checkpoints/meshnet_sweep/. $(MESHNET_RUN)/; }
+	@# a new run folder starts from the run's committed checkpoint when there is one
+	test -e $(MESHNET_RUN)/checkpoint.json || ! test -d $(MESHNET_CKPT) || \
+		{ mkdir -p $(MESHNET_RUN) && cp -r $(MESHNET_CKPT)/. $(MESHNET_RUN)/; }
 	nice -n 19 $(PY) -m diffgns.mesh.stages --data data/sweep_train.h5 --out $(MESHNET_RUN) \
 		--stages $(MESHNET_STAGES) $(MESHNET_NET)
 
