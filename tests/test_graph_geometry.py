@@ -145,8 +145,11 @@ def test_sampler_batches_carry_walls_and_padded_obstacles():
     assert b["walls"].dtype == np.float32
     right = b["walls"][:, 0, 1].astype(float)
     assert set(np.round(right, 6).tolist()) == {1.0, 0.6}  # both boxes drawn
-    assert np.all(b["obstacles"][right == 1.0] == np.float32(PARKED[0])) or \
-        np.allclose(b["obstacles"][right == 1.0], np.asarray(PARKED, np.float32))
+    none, two = b["obstacles"][right == 1.0], b["obstacles"][right == 0.6]
+    np.testing.assert_allclose(none, np.broadcast_to(np.asarray(PARKED, np.float32),
+                                                     none.shape))  # no obstacle: both parked
+    np.testing.assert_allclose(two, np.broadcast_to(np.asarray(  # its two, in order
+        [[0.3, 0.0, 0.35, 0.1], [0.4, 0.0, 0.45, 0.05]], np.float32), two.shape), rtol=1e-6)
 
 
 def test_padding_obstacle_is_no_obstacle_and_a_near_one_is_seen():

@@ -231,19 +231,9 @@ def step_with_reallocation(trainer: Trainer, params, opt_state, batch: dict, nbr
     cell-list slots), so no edge is ever dropped. ``nbrs`` maps node count -> list and is
     updated in place; pass a :class:`NeighborLists` to have the capacities checkpointed
     (exact resume). Returns (params, opt_state, loss)."""
-    C = trainer.gns.config.history
-    pos = batch["positions"]
-    n = pos.shape[2]
-    x = jnp.asarray(pos[0, C])
-    if isinstance(nbrs, NeighborLists):
-        nbrs.get_or_allocate(trainer.gns, x)
-    elif n not in nbrs:
-        nbrs[n] = trainer.gns.allocate(x)
-    out, nbrs[n] = retry_on_overflow(
-        lambda nb: trainer.step(params, opt_state, batch, nb, key), nbrs[n],
-        lambda out: bool(to_host(out[3])),
-        lambda nb, _, k: trainer.gns.neighbors.reallocate(x, nb, k), max_retries)
-    return out[0], out[1], out[2]
+    return _with_reallocation(
+        trainer, [batch], nbrs,
+        lambda nb: trainer.step(params, opt_state, batch, nb, key), max_retries)
 
 
 def steps_with_reallocation(trainer: Trainer, params, opt_state, batches: list[dict],
@@ -252,23 +242,33 @@ def steps_with_reallocation(trainer: Trainer, params, opt_state, batches: list[d
     overflow rule of :func:`step_with_reallocation`: if any step of the call overflowed, the
     list is re-allocated for the positions of the first that did and the whole call is redone
     from the same inputs. Returns (params, opt_state, losses (k,))."""
+    return _with_reallocation(
+        trainer, batches, nbrs,
+        lambda nb: trainer.steps(params, opt_state, batches, nb, keys), max_retries)
+
+
+def _with_reallocation(trainer: Trainer, batches: list[dict], nbrs: dict, run,
+                       max_retries: int):
+    """The one overflow rule of training: the list of the batches' node count is allocated
+    (or restored with its checkpointed capacity) from the first batch's current positions,
+    ``run(list) -> (params, opt_state, loss(es), overflowed)`` is redone after re-allocating
+    for the first batch whose step overflowed. Returns (params, opt_state, loss(es))."""
     C = trainer.gns.config.history
-    n = {b["positions"].shape[2] for b in batches}
-    if len(n) != 1:
-        raise ValueError(f"steps_with_reallocation needs one node count, got {sorted(n)}")
-    n = n.pop()
+    sizes = {b["positions"].shape[2] for b in batches}
+    if len(sizes) != 1:
+        raise ValueError(f"steps_with_reallocation needs one node count, got {sorted(sizes)}")
+    n = sizes.pop()
     xs = [jnp.asarray(b["positions"][0, C]) for b in batches]
     if isinstance(nbrs, NeighborLists):
         nbrs.get_or_allocate(trainer.gns, xs[0])
     elif n not in nbrs:
         nbrs[n] = trainer.gns.allocate(xs[0])
 
-    def first_bad(out) -> int:
-        return int(np.argmax(np.asarray(to_host(out[3]))))
+    def first_bad(out) -> int:  # index of the first overflowed step (0 for a single step)
+        return int(np.argmax(np.atleast_1d(np.asarray(to_host(out[3])))))
 
     out, nbrs[n] = retry_on_overflow(
-        lambda nb: trainer.steps(params, opt_state, batches, nb, keys), nbrs[n],
-        lambda out: bool(np.any(to_host(out[3]))),
+        run, nbrs[n], lambda out: bool(np.any(to_host(out[3]))),
         lambda nb, out, k: trainer.gns.neighbors.reallocate(xs[first_bad(out)], nb, k),
         max_retries)
     return out[0], out[1], out[2]
