@@ -1,27 +1,48 @@
 """Accuracy against wall time of the MPM, the GNS and hybrid GNS/MPM schedules (issue 5).
 
-    python benchmarks/hybrid_pareto.py --out benchmarks/results/hybrid_pareto.json
+    python benchmarks/hybrid_pareto.py [--models gns_cg16_pf gns_cg16 ...]
+        [--schedules GNS K2M5 K4M4 K8M2 ...] [--other-schedules GNS K4M4]
+        [--cases 0.75:37.5 1.75:27.5 2.75:27.5] [--rounds 3] [--threads both]
 
 On held-out column collapses (aspect ratios and friction angles not in the GNS training
 set), every simulator is scored against a fine MPM reference (``--reference-cells`` cells
 across the column): final runout error and the material-point position error (mean over
-particles and frames; see ``diffgns.hybrid.compare``). Wall time is the steady-state time of
-the jitted rollout (``benchmarks/timing.py``: first call = compile, timed apart; median of
-``--repeats``; block_until_ready; CPU time beside it), summed over the cases, under
-``benchmarks/protocol.py``. The Pareto front (mean position error against time) is marked in
-the table and the plot (``hybrid_pareto.png``). Every run is also scored against the MPM at
-the finest of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16`` and ``gns_cg16_pf`` were
-trained to emulate and that their hybrids run): for those models that isolates the learned
-error, which the hybrid's MPM frames correct, from the discretisation error that they share
-with that MPM. A second Pareto front is drawn on these "own-MPM" errors (the 16-cell MPM
-itself, with zero error, is not a candidate).
+particles and frames; see ``diffgns.hybrid.compare``). The reference is not timed; it is kept
+in ``--reference-cache`` (a file per case, resolution and frame count), so that a quiet-machine
+run need not spend its window on it. Every run is also scored against the MPM at the finest
+of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16*`` were trained to emulate and that
+their hybrids run): for those models that isolates the learned error, which the hybrid's MPM
+frames correct, from the discretisation error that they share with that MPM. A second Pareto
+front is drawn on these "own-MPM" errors (the 16-cell MPM itself, with zero error, is not a
+candidate).
+
+Timing (``benchmarks/protocol.py``, ``diffgns.timing``): every simulator of every case (the
+MPMs alone, the GNS alone, the hybrid schedules; built by ``diffgns.hybrid.compare``, the
+code ``diffgns hybrid`` runs) is first called once - compile, and for a learned simulator the
+neighbour-list sizing, timed apart (``compile_s`` = that call - the median steady call) - and
+then all of them are timed in the same ``--rounds`` interleaved rounds (one steady call of
+each per round, the order reversed every other round, ``block_until_ready``, wall and CPU
+time). A simulator's time is the median over rounds of its time summed over the cases; its
+speed-up over the MPM at its model's own resolution is the median of the per-round ratios of
+those sums. The Pareto front (mean position error against time) is marked in the table and
+the plot beside the JSON (``<out>.png``).
 
 The target of issue 5 is checked on both fronts and recorded under ``target``: a hybrid on
 the front with less than half the error of the GNS it runs (same model, same reference).
+
+Schedules are named ``GNS`` (the GNS alone after the MPM warm-up), ``K<k>M<m>`` (k MPM frames
+after every m GNS frames), ``K<k>A<tol>`` (adaptive: a GNS segment of at most 20 frames ends
+when the energy-balance deviation exceeds tol J/kg), with ``:reset``/``:reconstruct`` (the
+hand-off of the deformation gradient; default carry) and ``:rigid`` (particles follow their
+node rigidly; default affine), e.g. ``K4M4:reset``, ``GNS:rigid``.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -30,51 +51,119 @@ from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.graph.train_loop import load_model
-from diffgns.hybrid.compare import column_scene, model_cells, node_factor, score_against
-from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
-from diffgns.timing import block, measure, time_call
+from diffgns.hybrid.compare import column_scene, make_hybrid, model_cells, score_against
+from diffgns.hybrid.simulator import HybridParams, Schedule
+from diffgns.timing import block, interleave, measure
 
-CASES = [(0.75, 37.5), (1.75, 27.5), (2.75, 27.5)]
+CASES = ["0.75:37.5", "1.75:27.5", "2.75:27.5"]
+QUICK_CASE = "1.75:27.5"
+#: every schedule of the 2026-12-01 table (the first model's set before --schedules existed)
+FULL = ["GNS", "K1M10", "K2M10", "K2M5", "K4M4", "K4M2", "K8M2", "K2A0.02", "K2A0.005",
+        "K4M4:reset", "K4M4:reconstruct", "GNS:rigid", "K4M4:rigid"]
+SHORT = ["GNS", "K2M5", "K4M4"]  # the other models' schedules in that table
+QUICK = ["GNS", "K2M5", "K4M4"]
+#: the default set (~10 min on a quiet 2-core machine): the simulators behind the published
+#: speed-ups (gns_cg16_pf K=8 M=2, gns_cg16 K=4 M=4) and the MPMs of the front
+DEFAULT_MODELS = ("gns_cg16_pf", "gns_cg16")
+DEFAULT_SCHEDULES = ("GNS", "K4M4", "K8M2")
+DEFAULT_OTHER = ("GNS", "K4M4")
+DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / \
+    "diffgns" / "hybrid_pareto"
 
 
-def schedules(quick: bool):
-    gns_only = [Schedule(gns_frames=1, mpm_frames=0)]
-    hyb = [Schedule(gns_frames=m, mpm_frames=k) for k, m in
-           ((1, 10), (2, 10), (2, 5), (4, 4), (4, 2), (8, 2))]
-    hyb += [Schedule(gns_frames=20, mpm_frames=2, adaptive_tol=tol) for tol in (0.02, 0.005)]
-    hyb += [Schedule(gns_frames=4, mpm_frames=4, handoff=h) for h in ("reset", "reconstruct")]
-    hyb += [Schedule(gns_frames=1, mpm_frames=0, particle_map="rigid"),
-            Schedule(gns_frames=4, mpm_frames=4, particle_map="rigid")]
-    return gns_only + (hyb[2:4] if quick else hyb)
+def parse_schedule(spec: str) -> Schedule:
+    """A :class:`Schedule` from its name (see the module docstring): ``GNS``, ``K4M4``,
+    ``K2A0.02``, with ``:reset``, ``:reconstruct`` or ``:rigid``."""
+    head, *opts = spec.split(":")
+    kw: dict = {}
+    for o in opts:
+        if o in ("reset", "reconstruct", "carry"):
+            kw["handoff"] = o
+        elif o in ("rigid", "affine"):
+            kw["particle_map"] = o
+        else:
+            raise argparse.ArgumentTypeError(f"schedule {spec!r}: unknown option {o!r}")
+    if head == "GNS":
+        return Schedule(gns_frames=1, mpm_frames=0, **kw)
+    m = re.fullmatch(r"K(\d+)M(\d+)", head)
+    if m:
+        return Schedule(gns_frames=int(m[2]), mpm_frames=int(m[1]), **kw)
+    m = re.fullmatch(r"K(\d+)A([0-9.eE-]+)", head)
+    if m:
+        return Schedule(gns_frames=20, mpm_frames=int(m[1]), adaptive_tol=float(m[2]), **kw)
+    raise argparse.ArgumentTypeError(f"schedule {spec!r}: use GNS, K<k>M<m> or K<k>A<tol>")
 
 
-SHORT = [(0, 1), (2, 5), (4, 4)]  # (K, M) of the schedules run for the other models
+def parse_case(spec: str) -> tuple[float, float]:
+    """``"a:phi"`` -> (aspect ratio, friction angle in degrees)."""
+    try:
+        a, phi = (float(v) for v in spec.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"case {spec!r}: use aspect_ratio:friction_angle, "
+                                         "e.g. 1.75:27.5") from None
+    return a, phi
 
 
 # ---------------------------------------------------------------- simulator calls
-def run_mpm(scene, n_frames: int, stride: int, repeats: int):
-    """(positions (n_frames+1, N, 2) on GNS frames, timing dict) of the MPM alone."""
+def mpm_source_hash() -> str:
+    """Hash of the code a 2D column collapse runs (``diffgns/mpm``, the column builder and
+    the scene types it uses, ``interface.py``): a cached reference made by other code is not
+    reused."""
+    import diffgns
+
+    root = Path(diffgns.__file__).parent
+    scene = [root / "scene" / f"{m}.py" for m in ("builders", "core", "elements", "materials",
+                                                   "shapes")]
+    files = sorted([*root.glob("mpm/**/*.py"), *scene, root / "interface.py"])
+    h = hashlib.sha1()
+    for f in files:
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def reference(a: float, phi: float, cells: int, info: dict, n_frames: int, stride: int,
+              cache: Path | None) -> tuple[np.ndarray, dict]:
+    """(positions (n_frames+1, N, 2) on GNS frames, record) of the untimed reference MPM, from
+    ``cache`` when it holds this case (keyed by the scene, the frames and the hash of the MPM's
+    source, :func:`mpm_source_hash`)."""
+    scene = column_scene(a, phi, cells, info)
+    key = hashlib.sha1(json.dumps([a, phi, cells, n_frames, stride, repr(scene.domain),
+                                   scene.n_particles, scene.substeps, mpm_source_hash()]
+                                  ).encode()).hexdigest()[:12]
+    path = None if cache is None else cache / f"ref_a{a:g}_phi{phi:g}_c{cells}_{key}.npz"
+    if path is not None and path.exists():
+        return np.load(path)["positions"], {"cache": str(path), "cached": True, "key": key}
     sim = MPM(scene)
     p, s = sim.params(), sim.init()
-    t, pos = time_call(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions,
-                       repeats)
-    return np.asarray(pos)[::stride], dict(seconds=t["median_s"], substeps_per_frame=sim.n_sub,
-                                           **t)
+    t, frames = measure(lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0])
+    pos = np.asarray(frames.positions)[::stride]
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, positions=pos)
+    return pos, {"cache": None if path is None else str(path), "cached": False, "key": key,
+                 "first_call_s": t.wall_s}
 
 
-def run_hybrid(scene, gns, gp, info: dict, schedule: Schedule, n_frames: int, repeats: int):
-    """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames; the
-    first call (compile + neighbour-list sizing) is timed apart."""
+def mpm_call(scene, n_frames: int, stride: int):
+    """Zero-argument call -> positions on GNS frames of the jitted MPM alone (not yet
+    compiled)."""
     sim = MPM(scene)
-    s = sim.init()
-    hyb = Hybrid(sim, gns, info.get("frame_stride", 1), node_factor(info, model_cells(info)),
-                 schedule)
-    p = HybridParams(sim.params(), gp)
+    p, s = sim.params(), sim.init()
+    return lambda: rollout_jit(sim, p, s, n_frames=n_frames * stride)[0].positions[::stride]
+
+
+def hybrid_call(scene, gns, gp, info: dict, schedule: Schedule, n_frames: int):
+    """(zero-argument steady call -> HybridResult, the first call's sample, its result) of a
+    hybrid (or GNS-only) run of ``n_frames`` frames: the first call (compile + neighbour-list
+    sizing) is made here, the steady call reuses the list it sized."""
+    hyb = make_hybrid(scene, gns, info, schedule)  # diffgns.hybrid.compare: the walls too
+    params = HybridParams(hyb.mpm.params(), gp)
+    s = hyb.mpm.init()
     sync = lambda r: block((r.positions, r.nodes, r.mode))  # noqa: E731
-    first, (_, start) = measure(lambda: hyb.run(p, s, n_frames), sync=lambda r: sync(r[0]))
-    t, res = time_call(lambda: hyb.run(p, s, n_frames, state=start)[0], repeats, sync=sync,
-                       first=first)
-    return res, dict(seconds=t["median_s"], mpm_fraction=res.mpm_fraction, **t)
+    first, (res, start) = measure(lambda: hyb.run(params, s, n_frames),
+                                  sync=lambda r: sync(r[0]))
+    return (lambda: hyb.run(params, s, n_frames, state=start)[0]), sync, first, res
 
 
 # ---------------------------------------------------------------- analysis
@@ -90,85 +179,156 @@ def pareto(points):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--models", nargs="+",
-                    default=["src/diffgns/models/gns_cg16_pf", "src/diffgns/models/gns_cg16",
-                             "src/diffgns/models/gns_columns", "src/diffgns/models/gns_small"])
+    ap.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS),
+                    help="model folders or shipped names; the first runs --schedules, the "
+                         f"others --other-schedules (default {' '.join(DEFAULT_MODELS)})")
+    ap.add_argument("--schedules", nargs="+", type=parse_schedule,
+                    default=[parse_schedule(x) for x in DEFAULT_SCHEDULES],
+                    help="schedules of the first model (see the module docstring; default "
+                         f"{' '.join(DEFAULT_SCHEDULES)})")
+    ap.add_argument("--other-schedules", nargs="+", type=parse_schedule,
+                    default=[parse_schedule(x) for x in DEFAULT_OTHER],
+                    help=f"schedules of the other models (default {' '.join(DEFAULT_OTHER)})")
+    ap.add_argument("--cases", nargs="+", type=parse_case,
+                    default=[parse_case(c) for c in CASES], metavar="A:PHI",
+                    help="held-out columns: aspect ratio:friction angle (deg)")
     ap.add_argument("--frames", type=int, default=125, help="GNS frames (0.625 s)")
     ap.add_argument("--reference-cells", type=int, default=32)
+    ap.add_argument("--reference-cache", default=str(DEFAULT_CACHE),
+                    help="folder of the reference trajectories ('' : no cache)")
     ap.add_argument("--mpm-cells", type=int, nargs="+", default=[4, 8, 12, 16])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--quick", action="store_true", help="2 hybrid schedules, 1 case")
-    ap.add_argument("--out", default="hybrid_pareto.json")
+    ap.add_argument("--rounds", "--repeats", type=int, default=3, dest="rounds",
+                    help="interleaved rounds (steady calls of every simulator)")
+    ap.add_argument("--full", action="store_true",
+                    help="the 2026-12-01 set: gns_cg16_pf gns_cg16 gns_columns gns_small, "
+                         f"the first with {' '.join(FULL)}, the others {' '.join(SHORT)}")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"one case ({QUICK_CASE}), schedules {' '.join(QUICK)} for all models")
+    ap.add_argument("--prepare-references", action="store_true",
+                    help="only compute the untimed references into --reference-cache (any "
+                         "load) and exit; a quiet run then finds them there")
+    ap.add_argument("--out", default="hybrid_pareto_rounds.json",
+                    help="results file (the 2026-12-01 record hybrid_pareto.json is kept)")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
-    run = protocol.start(args, "hybrid_pareto")
+    if args.full:
+        args.models = ["gns_cg16_pf", "gns_cg16", "gns_columns", "gns_small"]
+        args.schedules = [parse_schedule(x) for x in FULL]
+        args.other_schedules = [parse_schedule(x) for x in SHORT]
+    if args.quick:
+        args.cases = [parse_case(QUICK_CASE)]
+        args.schedules = args.other_schedules = [parse_schedule(x) for x in QUICK]
+    run = protocol.start(args, "hybrid_pareto", timed=not args.prepare_references)
     warm_up_jax()
-    cases = CASES[1:2] if args.quick else CASES
-    models = {Path(m).name: load_model(m) for m in args.models if Path(m).exists()}
+    models = {Path(m).name: load_model(m) for m in args.models}
     info0 = next(iter(models.values()))[2]  # all models share the training box
     stride = info0.get("frame_stride", 1)
-    rows = []
-    for a, phi in cases:
-        ref, t_ref = run_mpm(column_scene(a, phi, args.reference_cells, info0), args.frames,
-                             stride, 1)
-        rows.append(dict(case=[a, phi], family="reference", label=f"MPM {args.reference_cells}"
-                         f" cells (reference)", **score_against(ref, ref), **t_ref))
-        same_res = {}
+    own_cells = max(args.mpm_cells)  # the resolution of the learned-error reference
+    cache = Path(args.reference_cache) if args.reference_cache else None
+    if args.prepare_references:
+        for a, phi in args.cases:
+            _, rec = reference(a, phi, args.reference_cells, info0, args.frames, stride, cache)
+            run.print(f"reference a = {a:g}, phi = {phi:g}: {rec}")
+        return
+    calls, syncs, firsts, rows, refs = {}, {}, {}, [], []
+    for a, phi in args.cases:
+        ref, rec = reference(a, phi, args.reference_cells, info0, args.frames, stride, cache)
+        refs.append(dict(case=[a, phi], cells=args.reference_cells, **rec))
+        run.print(f"case a = {a:g}, phi = {phi:g}: reference MPM {args.reference_cells} cells "
+                  + ("from the cache" if rec["cached"] else "computed"), tag=False)
+        case_rows, positions = [], {}
         for cells in args.mpm_cells:
-            x, t = run_mpm(column_scene(a, phi, cells, info0), args.frames, stride, args.repeats)
-            same_res[cells] = x
-            rows.append(dict(case=[a, phi], family="MPM", label=f"MPM {cells} cells",
-                             **score_against(x, ref), **t))
-        own_cells = max(args.mpm_cells)  # the resolution of the learned-error reference
-        for r in rows[-len(args.mpm_cells):]:
-            own = score_against(same_res[int(r["label"].split()[1])], same_res[own_cells])
-            r.update(own_mpm_runout_error=own["runout_error"],
-                     own_mpm_position_error_m=own["mean_position_error_m"])
-            run.print(r["label"], a, phi, f"{r['mean_position_error_m']:.2e}",
-                      f"{r['seconds']:.3f}s")
-        for name, (gns, gp, info) in models.items():
+            label = f"MPM {cells} cells"
+            name = f"{label} @ {a:g}/{phi:g}"
+            calls[name] = mpm_call(column_scene(a, phi, cells, info0), args.frames, stride)
+            syncs[name] = block
+            firsts[name], x = measure(calls[name])
+            positions[name] = np.asarray(x)
+            case_rows.append(dict(name=name, case=[a, phi], family="MPM", label=label,
+                                  cells=cells, mpm_fraction=1.0))
+        for i, (mname, (gns, gp, info)) in enumerate(models.items()):
             scene = column_scene(a, phi, model_cells(info), info)
-            for sched in schedules(args.quick):
-                first = name == Path(args.models[0]).name
-                if not first and (sched.handoff != "carry" or sched.adaptive_tol
-                                  or sched.particle_map != "affine"
-                                  or (sched.mpm_frames, sched.gns_frames) not in SHORT):
-                    continue  # the full set of schedules for the first model only
-                res, t = run_hybrid(scene, gns, gp, info, sched, args.frames, args.repeats)
-                fam = "GNS" if sched.mpm_frames == 0 else "hybrid"
-                x = np.asarray(res.positions)
-                rows.append(dict(case=[a, phi], family=fam, label=f"{sched.label} [{name}]",
-                                 **score_against(x, ref), **t))
-                own = score_against(x, same_res[own_cells])  # against the MPM gns_cg16 emulates
-                rows[-1].update(own_mpm_runout_error=own["runout_error"],
-                                own_mpm_position_error_m=own["mean_position_error_m"])
-                run.print(rows[-1]["label"], a, phi,
-                          f"{rows[-1]['mean_position_error_m']:.2e}", f"{t['seconds']:.3f}s")
-    table = aggregate(rows)
+            for sched in (args.schedules if i == 0 else args.other_schedules):
+                label = f"{sched.label} [{mname}]"
+                name = f"{label} @ {a:g}/{phi:g}"
+                calls[name], syncs[name], firsts[name], res = hybrid_call(
+                    scene, gns, gp, info, sched, args.frames)
+                positions[name] = np.asarray(res.positions)
+                case_rows.append(dict(name=name, case=[a, phi],
+                                      family="GNS" if sched.mpm_frames == 0 else "hybrid",
+                                      label=label, model=mname, own_cells=model_cells(info),
+                                      mpm_fraction=res.mpm_fraction, **res.clamp_summary()))
+        own = positions[f"MPM {own_cells} cells @ {a:g}/{phi:g}"]
+        for r in case_rows:  # errors: against the reference and the own-resolution MPM
+            x = positions[r["name"]]
+            r.update(score_against(x, ref))
+            o = score_against(x, own)
+            r.update(own_mpm_runout_error=o["runout_error"],
+                     own_mpm_position_error_m=o["mean_position_error_m"])
+            run.print(f"{r['label']:52s} a={a:g} phi={phi:g} error "
+                      f"{1e3 * r['mean_position_error_m']:.2f} mm, first call "
+                      f"{firsts[r['name']].wall_s:.1f} s", tag=False)
+        rows += case_rows
+    run.print(f"{len(calls)} simulator runs, {args.rounds} interleaved rounds", tag=False)
+    rounds = interleave(calls, max(1, args.rounds), sync=syncs, warmup=False)
+    rounds.first.update(firsts)  # the first calls (compile, sizing) were made above
+    for r in rows:
+        t = rounds.summary(r["name"])
+        r.update(seconds=t["median_s"], cpu_seconds=t["cpu_median_s"],
+                 seconds_all=t["samples_s"], compile_s=t["compile_s"],
+                 first_call_s=t["first_call_s"])
+    table = aggregate(rows, rounds)
     target = check_target(table)
-    payload = dict(cases=cases, frames=args.frames, own_mpm_cells=own_cells, rows=rows,
-                   table=table, target=target)
-    run.finish(args.out, payload, lambda p: plot(table, p.with_suffix(".png"),
-                                                 args.reference_cells, own_cells))
+    payload = dict(cases=args.cases, frames=args.frames, own_mpm_cells=own_cells,
+                   reference=refs, models=list(models),
+                   schedules=[s.label for s in args.schedules],
+                   other_schedules=[s.label for s in args.other_schedules],
+                   rounds=max(1, args.rounds), rows=rows, table=table, target=target,
+                   interleaved=rounds.to_json()["rounds"])
     print_table(run, table)
     for k, v in target.items():
         run.print(f"target against {k}: {v}")
+    if run.mode == "both" and not run.pinned:
+        payload["one_thread_pinned"] = child = run.pinned_child()
+        one = {r["label"]: r.get("speedup_vs_own_mpm") for r in child.get("table", [])}
+        for r in table:
+            if r.get("speedup_vs_own_mpm") is not None:
+                run.print(f"{r['label']} speed-up over the {r['own_mpm']}: "
+                          + protocol.both_ratios(r["speedup_vs_own_mpm"], one.get(r["label"]),
+                                                 child, 2))
+    run.finish(args.out, payload, lambda p: plot(table, p.with_suffix(".png"),
+                                                 args.reference_cells, own_cells))
 
 
-def aggregate(rows):
+def aggregate(rows, rounds):
+    """One table row per simulator: errors averaged over the cases; time = median over the
+    rounds of the time summed over the cases (wall and CPU); speed-up over the MPM at the
+    model's own resolution = median of the per-round ratios of those sums."""
     labels = list(dict.fromkeys(r["label"] for r in rows))
+    totals = {}
+    for lab in labels:
+        names = [r["name"] for r in rows if r["label"] == lab]
+        totals[lab] = dict(wall=[sum(rd[n].wall_s for n in names) for rd in rounds.rounds],
+                           cpu=[sum(rd[n].cpu_s for n in names) for rd in rounds.rounds])
     table = []
     for lab in labels:
         rs = [r for r in rows if r["label"] == lab]
+        wall, cpu = totals[lab]["wall"], totals[lab]["cpu"]
         table.append(dict(label=lab, family=rs[0]["family"],
-                          seconds=float(sum(r["seconds"] for r in rs)),
+                          seconds=float(np.median(wall)), cpu_seconds=float(np.median(cpu)),
+                          seconds_per_round=wall, cases=len(rs),
                           compile_s=float(sum(r["compile_s"] for r in rs)),
                           runout_error=float(np.mean([r["runout_error"] for r in rs])),
                           mean_position_error_m=float(np.mean(
                               [r["mean_position_error_m"] for r in rs])),
                           final_position_error_m=float(np.mean(
                               [r["final_position_error_m"] for r in rs])),
-                          mpm_fraction=rs[0].get("mpm_fraction", 1.0)))
+                          mpm_fraction=float(np.mean([r["mpm_fraction"] for r in rs]))))
+        own = f"MPM {rs[0]['own_cells']} cells" if "own_cells" in rs[0] else None
+        if own in totals:
+            table[-1]["own_mpm"] = own
+            table[-1]["speedup_vs_own_mpm"] = float(np.median(
+                [o / t for o, t in zip(totals[own]["wall"], wall)]))
         if "own_mpm_position_error_m" in rs[0]:
             table[-1]["own_mpm_position_error_m"] = float(np.mean(
                 [r["own_mpm_position_error_m"] for r in rs]))
@@ -211,12 +371,16 @@ def check_target(table) -> dict:
 
 
 def print_table(run, table):
-    run.print(f"{'simulator':52s} {'time s':>8s} {'MPM %':>6s} {'runout err':>10s} "
-              f"{'pos err mm':>10s} {'final mm':>9s} {'vs own MPM mm':>13s} front own-front")
+    run.print(f"{'simulator':52s} {'time s':>8s} {'CPU s':>7s} {'x own MPM':>9s} {'MPM %':>6s} "
+              f"{'runout err':>10s} {'pos err mm':>10s} {'final mm':>9s} {'vs own MPM mm':>13s} "
+              "front own-front")
     for r in table:
         own = r.get("own_mpm_position_error_m")
         own = f"{1e3 * own:13.2f}" if own is not None else f"{'':13s}"
-        run.print(f"{r['label']:52s} {r['seconds']:8.3f} {100 * r['mpm_fraction']:6.0f} "
+        sp = r.get("speedup_vs_own_mpm")
+        sp = f"{sp:9.2f}" if sp is not None else f"{'':9s}"
+        run.print(f"{r['label']:52s} {r['seconds']:8.3f} {r['cpu_seconds']:7.2f} {sp} "
+                  f"{100 * r['mpm_fraction']:6.0f} "
                   f"{r['runout_error']:10.3f} {1e3 * r['mean_position_error_m']:10.2f} "
                   f"{1e3 * r['final_position_error_m']:9.2f} {own} "
                   f"{'*' if r.get('pareto') else '':5s} {'*' if r.get('pareto_own') else ''}")
@@ -250,7 +414,7 @@ def plot(table, path: Path, reference_cells: int, own_cells: int):
             ax.scatter([], [], marker=m, color=c, label=fam)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("wall time, s (steady state, summed over held-out cases)")
+        ax.set_xlabel("wall time, s (steady state, summed over the cases; median of rounds)")
         ax.set_ylabel("mean material-point position error, mm")
         ax.set_title(title, fontsize=10)
         ax.legend(fontsize=8)

@@ -1,11 +1,12 @@
 """Memory and time of gradients through GNS rollouts, with and without jax.checkpoint.
 
     .venv/bin/python benchmarks/inverse_gns_memory.py [--frames 30 100 120] [--blocks 10 2]
-        [--repeats 3] [--aspect-ratio 1.75] [--note TEXT]
+        [--repeats 3] [--aspect-ratio 1.75] [--model gns_columns] [--note TEXT]
 
-Model: ``models/gns_columns`` (latent 64, 5 message-passing steps). Scene: the main inverse
-example's column (``ColumnCase(aspect_ratio=1.75)``: 448 MPM particles -> 112 GNS nodes in
-the 0.8 x 0.35 m box); the 6 initial frames are observed MPM frames. Loss: the inverse
+Model: ``--model``, default ``gns_columns`` (latent 64, 5 message-passing steps; the model of
+the published table). Scene: the main inverse example's column at the model's resolution
+(``ColumnCase.from_model``; for ``gns_columns`` 448 MPM particles -> 112 GNS nodes in the
+0.8 x 0.35 m box); the 6 initial frames are observed MPM frames. Loss: the inverse
 example's ``(soft runout(x_T) - observed soft runout(x_T))^2`` at the last predicted frame T;
 gradient with respect to the friction angle (through tan phi, the material feature of every
 node). 120 predicted frames (0.6 s) is the full rollout to rest.
@@ -42,15 +43,15 @@ def log(msg: str) -> None:
     protocol.worker_run("inverse_gns_memory").print(msg, file=sys.stderr)
 
 
-def loss_fn(n_steps: int, block: int | None, aspect_ratio: float):
+def loss_fn(n_steps: int, block: int | None, aspect_ratio: float, model: str):
     """(loss(phi) = soft-runout misfit of a GNS rollout of ``n_steps`` frames, nodes). The
     one place this benchmark calls the simulator."""
     from diffgns.inverse import objectives
-    from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator
+    from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator, model_info
 
-    col = Column(ColumnCase(aspect_ratio=aspect_ratio))
+    col = Column(ColumnCase.from_model(model_info(model), aspect_ratio))
     observed = col.observation({"friction_angle": 30.0})
-    sim = gns_simulator(col, observed=observed, checkpoint_block=block, n_steps=n_steps)
+    sim = gns_simulator(col, model, observed=observed, checkpoint_block=block, n_steps=n_steps)
     obj = objectives.runout_loss(observed[:sim.C + 1 + n_steps], method="softmax")
 
     def loss(phi):
@@ -60,12 +61,13 @@ def loss_fn(n_steps: int, block: int | None, aspect_ratio: float):
     return loss, col.n_nodes
 
 
-def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float) -> dict:
+def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float,
+             model: str) -> dict:
     import jax
     import jax.numpy as jnp
 
     warm_up_jax()
-    loss, nodes = loss_fn(n_steps, block, aspect_ratio)
+    loss, nodes = loss_fn(n_steps, block, aspect_ratio, model)
     phi = jnp.asarray(45.0, jnp.float32)
     res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block), "nodes": nodes,
            "loadavg_start": list(os.getloadavg())}
@@ -92,7 +94,8 @@ def run_case(n_steps: int, block: int | None, repeats: int, aspect_ratio: float)
 
 def spawn(run: protocol.Run, n_steps: int, block: int | None, args) -> dict:
     cmd = [str(Path(__file__).resolve()), "--case", str(n_steps), str(block or 0),
-           "--repeats", str(args.repeats), "--aspect-ratio", str(args.aspect_ratio)]
+           "--repeats", str(args.repeats), "--aspect-ratio", str(args.aspect_ratio),
+           "--model", args.model]
     case, (res, code) = measure(lambda: protocol.run_worker(run, cmd, TAG), sync=no_sync)
     if res is None:
         res = {"n_steps": n_steps, "block": block, "checkpoint": bool(block),
@@ -156,13 +159,17 @@ def main(argv=None) -> None:
                     help="frames per jax.checkpoint block (each also run without)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--aspect-ratio", type=float, default=1.75)
+    ap.add_argument("--model", default="gns_columns",
+                    help="GNS model (folder or shipped name); the column is built at its "
+                         "resolution")
     ap.add_argument("--note", default=None)
     ap.add_argument("--out", default="inverse_gns_memory.json")
     ap.add_argument("--case", nargs=2, type=int, help=argparse.SUPPRESS)
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
     if args.case:  # worker process (the parent checked the load)
-        res = run_case(args.case[0], args.case[1] or None, args.repeats, args.aspect_ratio)
+        res = run_case(args.case[0], args.case[1] or None, args.repeats, args.aspect_ratio,
+                       args.model)
         print(TAG + json.dumps(res), flush=True)
         return
     run = protocol.start(args, "inverse_gns_memory")
@@ -172,8 +179,8 @@ def main(argv=None) -> None:
     run.print(text)
     payload = {
         "note": args.note,
-        "description": "d/dphi of the soft-runout misfit through GNS rollouts of models/"
-                       "gns_columns, with and without jax.checkpoint blocks; AOT-compiled "
+        "description": f"d/dphi of the soft-runout misfit through GNS rollouts of {args.model}"
+                       ", with and without jax.checkpoint blocks; AOT-compiled "
                        "programs, XLA memory_analysis, median steady calls (wall and CPU), "
                        "one process per case",
         "settings": {k: v for k, v in vars(args).items() if k != "case"},

@@ -1,7 +1,8 @@
 """MPM throughput (particle-substeps per second) of a granular column collapse at ~2k,
 ~8k and ~32k particles.
 
-    .venv/bin/python benchmarks/mpm_throughput.py [--repeats 5] [--quick] [--threads both]
+    .venv/bin/python benchmarks/mpm_throughput.py [--repeats 5] [--quick | --cells 23 45 90]
+        [--threads both]
 
 Each size is ``column_collapse(cells_across=c)`` (sand, 4 particles per cell, friction
 floor, slip walls) run with the jitted MPM rollout. ``frame_dt`` is scaled with dx so every
@@ -27,6 +28,12 @@ from diffgns.timing import measure, time_call
 # (cells across the column, frames per timed call); 4 particles per cell -> N = 4 c^2
 SIZES = ((23, 10), (45, 4), (90, 2))
 BASE_CELLS, BASE_FRAME_DT = 23, 2.5e-3
+
+
+def frames_for(cells: int) -> int:
+    """Frames per timed call at ``cells`` across: those of :data:`SIZES`, else about as many
+    particle-substeps per call as at 23 cells (10 frames)."""
+    return dict(SIZES).get(cells, max(1, round(10 * BASE_CELLS ** 2 / cells ** 2)))
 
 
 def rollout_call(cells: int, n_frames: int):
@@ -97,13 +104,19 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5, help="steady calls per size (>= 3)")
     ap.add_argument("--quick", action="store_true", help="only the smallest size")
+    ap.add_argument("--cells", type=int, nargs="+", default=None,
+                    help="cells across the column (N = 4 cells^2; default "
+                         f"{' '.join(str(c) for c, _ in SIZES)})")
     ap.add_argument("--out", default="mpm_throughput.json")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
     run = protocol.start(args, "mpm_throughput")
     warm_up_jax()
-    total, rows = measure(lambda: measure_all(run, SIZES[:1] if args.quick else SIZES,
-                                              max(3, args.repeats)), sync=lambda _: None)
+    sizes = SIZES[:1] if args.quick else SIZES
+    if args.cells:
+        sizes = tuple((c, frames_for(c)) for c in args.cells)
+    total, rows = measure(lambda: measure_all(run, sizes, max(3, args.repeats)),
+                          sync=lambda _: None)
     payload = {
         "description": "column_collapse sand scene (4 ppc, friction floor), jitted MPM "
                        "rollout; compile_s = first call - median steady call",

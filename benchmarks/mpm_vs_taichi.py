@@ -12,8 +12,9 @@ Initial positions: numpy ``default_rng(0)`` uniform in [0.2, 0.6]^2, shared by b
 (a) Taichi: four parallel loops in one ``@ti.kernel`` (grid clear, P2G with atomic adds,
     grid update, G2P), one kernel launch per substep, ``ti.init(arch=ti.cpu,
     cpu_max_num_threads=<threads>)``.
-(b) diffgns: ``shape.stencil`` -> ``transfer.p2g`` -> ``transfer.grid_velocity`` ->
-    gravity -> ``boundaries.wall_slip`` on the four slabs -> ``transfer.g2p``, in the
+(b) diffgns (:class:`DiffgnsJFluid`, shared with ``mpm3d_vs_taichi.py``): ``shape.stencil``
+    -> ``transfer.p2g`` -> ``transfer.grid_velocity`` -> gravity -> ``boundaries.wall_slip``
+    on the four slabs -> ``transfer.g2p``, in the
     component-major layout ((2, N) vectors, (2, 2, N) matrices), 50 substeps in a
     ``lax.scan`` under ``jax.jit``.
 
@@ -198,10 +199,12 @@ class TaichiShippedExample:
 
 
 # ============================================================================ diffgns
-class DiffgnsMPM88:
-    """The same physics from diffgns' transfer kernels, component-major, scanned + jitted."""
+class DiffgnsJFluid:
+    """The J-fluid physics of Taichi's mpm88/mpm3d from diffgns' transfer kernels, in ``dim``
+    2 or 3, component-major, scanned + jitted (``n_grid`` nodes per axis, time step ``dt``,
+    particle volume ``(dx/2)^2`` as both Taichi examples write it, in 3D too)."""
 
-    def __init__(self):
+    def __init__(self, dim: int = 2, n_grid: int = N_GRID, dt: float = DT):
         import jax
         import jax.numpy as jnp
 
@@ -209,34 +212,39 @@ class DiffgnsMPM88:
         from diffgns.mpm.shape import stencil
         from diffgns.mpm.transfer import g2p, grid_velocity, p2g
 
-        self.jax, self.jnp = jax, jnp
+        self.jax, self.jnp, self.dim = jax, jnp, dim
         f32 = jnp.float32
-        n_nodes = N_GRID * N_GRID
-        mass = jnp.full((N_PARTICLES,), P_MASS, f32)
-        stress_k = DT * 4.0 / DX**2 * P_VOL
-        # (slab of the (nx, ny) node grid, outward normal of the wall surface)
-        slabs = (
-            (np.s_[:BOUND, :], (1.0, 0.0)),
-            (np.s_[N_GRID - BOUND + 1:, :], (-1.0, 0.0)),
-            (np.s_[:, :BOUND], (0.0, 1.0)),
-            (np.s_[:, N_GRID - BOUND + 1:], (0.0, -1.0)),
-        )
+        dx = 1.0 / n_grid
+        p_vol = (0.5 * dx) ** 2
+        p_mass = P_RHO * p_vol
+        n_nodes = n_grid**dim
+        stress_k = dt * 4.0 / dx**2 * p_vol
+        # (slab of the node grid, outward normal of the wall surface): nodes i < BOUND and
+        # i > n_grid - BOUND along each axis
+        slabs = []
+        for a in range(dim):
+            for sl, side in ((slice(None, BOUND), 1.0), (slice(n_grid - BOUND + 1, None), -1.0)):
+                idx = [slice(None)] * dim
+                idx[a] = sl
+                slabs.append((tuple(idx), tuple(side if b == a else 0.0 for b in range(dim))))
 
         def substep(state, _):
             x, v, C, J = state
-            idx, w, dpos = stencil(x / DX, (N_GRID, N_GRID))
+            mass = jnp.full(x.shape[1:], p_mass, f32)
+            idx, w, dpos = stencil(x / dx, (n_grid,) * dim)
             tau = E * (J - 1.0)  # Kirchhoff stress tau * I
-            affine = P_MASS * C
-            affine = affine.at[0, 0].add(-stress_k * tau).at[1, 1].add(-stress_k * tau)
-            grid = p2g(idx, w, dpos, mass, mass * v, affine, n_nodes, DX)
+            affine = p_mass * C
+            for a in range(dim):
+                affine = affine.at[a, a].add(-stress_k * tau)
+            grid = p2g(idx, w, dpos, mass, mass * v, affine, n_nodes, dx)
             gv = grid_velocity(grid)
-            gv = gv.at[1].add(-DT * GRAVITY).reshape(2, N_GRID, N_GRID)
-            for sl, (nx, ny) in slabs:
-                vx, vy = wall_slip((gv[0][sl], gv[1][sl]), (nx, ny))
-                gv = gv.at[(slice(None), *sl)].set(jnp.stack([vx, vy]))
-            v, C = g2p(idx, w, dpos, gv, DX)
-            x = x + DT * v
-            J = J * (1.0 + DT * (C[0, 0] + C[1, 1]))
+            gv = gv.at[1].add(-dt * GRAVITY).reshape(dim, *(n_grid,) * dim)
+            for sl, normal in slabs:
+                comps = wall_slip(tuple(gv[c][sl] for c in range(dim)), normal)
+                gv = gv.at[(slice(None), *sl)].set(jnp.stack(comps))
+            v, C = g2p(idx, w, dpos, gv, dx)
+            x = x + dt * v
+            J = J * (1.0 + dt * sum(C[a, a] for a in range(dim)))
             return (x, v, C, J), None
 
         @jax.jit
@@ -245,14 +253,15 @@ class DiffgnsMPM88:
 
         self._run_scan = run_scan
         self.state = None
+        self.v0 = V0 if dim == 2 else (0.0,) * dim
 
     def reset(self, x0: np.ndarray):
-        jnp = self.jnp
+        jnp, d = self.jnp, self.dim
         n = len(x0)
         x = jnp.asarray(x0.T, jnp.float32)
-        v = jnp.broadcast_to(jnp.asarray(V0, jnp.float32)[:, None], (2, n))
+        v = jnp.broadcast_to(jnp.asarray(self.v0, jnp.float32)[:, None], (d, n))
         self.state = self.jax.block_until_ready(
-            (x, v, jnp.zeros((2, 2, n), jnp.float32), jnp.ones(n, jnp.float32)))
+            (x, v, jnp.zeros((d, d, n), jnp.float32), jnp.ones(n, jnp.float32)))
 
     def run(self, n_substeps: int):
         if n_substeps % SCAN_LEN:
@@ -305,7 +314,8 @@ def first_calls(sims: dict, x0: np.ndarray) -> dict:
     return out
 
 
-def timing_rounds(sims: dict, x0: np.ndarray, seg: int, repeats: int) -> dict:
+def timing_rounds(sims: dict, x0: np.ndarray, seg: int, repeats: int,
+                  n_particles: int = N_PARTICLES) -> dict:
     """Reset both to x0, then interleaved rounds of one ``seg``-substep segment each (the
     first segment of each, timed apart, compiles/warms up). Throughput ratio diffgns /
     Taichi = median over rounds of t_taichi / t_diffgns."""
@@ -313,7 +323,7 @@ def timing_rounds(sims: dict, x0: np.ndarray, seg: int, repeats: int) -> dict:
         sim.reset(x0)
     res = interleave({k: (lambda s=s: s.run(seg)) for k, s in sims.items()}, repeats,
                      sync=no_sync)
-    work = N_PARTICLES * seg
+    work = n_particles * seg
     out = {"rounds": res.to_json()["rounds"], "timing": {}}
     for name in sims:
         t = res.summary(name)
@@ -386,7 +396,7 @@ def main(argv=None):
     ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=run.threads)
     ti_config = taichi_config(ti)
     x0 = initial_positions(0)
-    sims = {"taichi": TaichiMPM88(ti), "diffgns": DiffgnsMPM88()}
+    sims = {"taichi": TaichiMPM88(ti), "diffgns": DiffgnsJFluid()}
     workdir = tempfile.mkdtemp(prefix="mpm88_")
     try:
         timed = {**sims, "taichi_example": TaichiShippedExample(ti, run.threads, workdir)}

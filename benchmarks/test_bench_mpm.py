@@ -67,9 +67,9 @@ def test_frame_fluid_2k(benchmark, fluid_2k):
 def test_mpm88_kernels_50_substeps(benchmark):
     """50 substeps of the mpm88 problem built from diffgns' transfer kernels (8192
     particles, 128^2 grid), the diffgns side of ``mpm_vs_taichi.py``."""
-    from mpm_vs_taichi import N_PARTICLES, SCAN_LEN, DiffgnsMPM88, initial_positions
+    from mpm_vs_taichi import N_PARTICLES, SCAN_LEN, DiffgnsJFluid, initial_positions
 
-    sim = DiffgnsMPM88()
+    sim = DiffgnsJFluid()
     x0 = initial_positions(0)
     sim.reset(x0)
     sim.run(SCAN_LEN)  # compile

@@ -12,9 +12,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 def test_mpm88_transcription_traces_with_the_library_kernels():
-    from mpm_vs_taichi import N_PARTICLES, DiffgnsMPM88, initial_positions
+    from mpm_vs_taichi import N_PARTICLES, DiffgnsJFluid, initial_positions
 
-    sim = DiffgnsMPM88()
+    sim = DiffgnsJFluid()
     sim.reset(initial_positions(0))
     out = jax.eval_shape(sim._run_scan, sim.state)
     assert out[0].shape[-1] == N_PARTICLES or out[0].shape[0] == N_PARTICLES

@@ -1,6 +1,7 @@
 """Scalar and profile measures of particle configurations (pure, differentiable).
 
-Positions are (N, 2) or (T, N, 2) in m; masses (N,) in kg; velocities in m/s.
+Positions are (N, d) or (T, N, d) in m (d = 2, or 3 where said; y vertical); masses (N,)
+in kg; velocities in m/s.
 """
 from __future__ import annotations
 
@@ -10,18 +11,23 @@ import numpy as np
 
 
 def runout(x: jax.Array, origin: float = 0.0, method: str = "max", q: float = 99.0,
-           temperature: float = 2e-3) -> jax.Array:
-    """Front position along x relative to ``origin``, m.
+           temperature: float = 2e-3, center=None) -> jax.Array:
+    """Front position along x relative to ``origin``, or the radius of the front about a
+    vertical axis (3D), m.
 
     Args:
-        x: (..., N, 2) positions.
+        x: (..., N, d) positions, d = 2 or 3 (y vertical).
+        origin: x from which the front is measured (without ``center``), m.
         method: "max" (farthest particle: the gradient flows through one particle),
-            "percentile" (q-th percentile of x: robust to stray particles, gradient spread
-            over two particles), or "softmax" (temperature-weighted soft maximum: smooth,
+            "percentile" (q-th percentile: robust to stray particles, gradient spread over
+            two particles), or "softmax" (temperature-weighted soft maximum: smooth,
             gradient spread over the front; tends to "max" as temperature -> 0).
         temperature: length scale of the soft maximum, m.
+        center: (cx, cz) of a vertical axis, m (3D only): the front is then the horizontal
+            distance ``sqrt((x - cx)^2 + (z - cz)^2)`` (an axisymmetric collapse's runout
+            radius; its gradient is finite on the axis).
     """
-    xs = x[..., 0] - origin
+    xs = x[..., 0] - origin if center is None else radial_distance(x, center)
     if method == "max":
         return xs.max(-1)
     if method == "percentile":
@@ -30,6 +36,18 @@ def runout(x: jax.Array, origin: float = 0.0, method: str = "max", q: float = 99
         return temperature * jax.nn.logsumexp(xs / temperature, axis=-1) - temperature * jnp.log(
             xs.shape[-1])
     raise ValueError(f"runout method {method!r} is unknown; use 'max', 'percentile' or 'softmax'")
+
+
+def radial_distance(x: jax.Array, center) -> jax.Array:
+    """Horizontal distance (..., N), m, of 3D positions ``x`` (..., N, 3) from the vertical
+    axis x = cx, z = cz (``center``, m); its gradient is finite (0) on the axis."""
+    if x.shape[-1] != 3:
+        raise ValueError(f"a radial distance (a runout about a centre) needs 3D positions "
+                         f"(..., N, 3), got {tuple(x.shape)}")
+    x = jnp.asarray(x)
+    c = jnp.asarray(center, x.dtype)
+    h = jnp.stack([x[..., 0] - c[0], x[..., 2] - c[1]])
+    return jnp.sqrt(jnp.sum(h * h, axis=0) + jnp.finfo(x.dtype).tiny)
 
 
 def deposit_profile(x: jax.Array, edges: jax.Array, sharpness: float | None = None) -> jax.Array:
@@ -90,12 +108,12 @@ def flow_runout(x0: np.ndarray, x_final: np.ndarray, direction: int | None = Non
 
 
 def kinetic_energy(v: jax.Array, mass: jax.Array) -> jax.Array:
-    """Kinetic energy 0.5 sum m |v|^2, J per m of depth; v (..., N, 2)."""
+    """Kinetic energy 0.5 sum m |v|^2; v (..., N, d). J (J per m of depth in 2D)."""
     return 0.5 * jnp.sum(mass * jnp.sum(v * v, -1), -1)
 
 
 def momentum(v: jax.Array, mass: jax.Array) -> jax.Array:
-    """Total momentum (..., 2), kg m/s per m of depth."""
+    """Total momentum (..., d), kg m/s (per m of depth in 2D)."""
     return jnp.sum(mass[:, None] * v, -2)
 
 

@@ -23,18 +23,18 @@ class Trajectory:
     """Particle states at frames.
 
     Attributes:
-        positions: (T, N, 2) particle positions in m.
-        velocities: (T, N, 2) particle velocities in m/s.
+        positions: (T, N, d) particle positions in m (d = 2 or 3, y vertical).
+        velocities: (T, N, d) particle velocities in m/s.
         particle_type: (N,) int32 particle type (SAND, FLUID, ELASTIC, KINEMATIC).
         material: (N,) float material feature, tan(friction angle) for sand, 0 otherwise.
         frame_dt: time between frames in s (static).
-        bounds: ((xmin, xmax), (ymin, ymax)) of the domain in m (static).
+        bounds: ((xmin, xmax), (ymin, ymax)[, (zmin, zmax)]) of the domain in m (static).
         clamped: (T,) int32 positions a domain clamp moved in each frame (the simulator's
             :class:`~diffgns.clamp.ClampCount`), or None when the trajectory was not made by a
             simulator (a dataset, a reference file).
         clamp_shift: (T,) largest distance a clamp moved a position in each frame, m, or None.
-        obstacles: box obstacles ``((x0, y0, x1, y1), ...)`` of the scene, m (static; empty
-            when the trajectory records none).
+        obstacles: box obstacles ``((x0, y0, x1, y1), ...)`` (3D: ``(x0, y0, z0, x1, y1,
+            z1)``) of the scene, m (static; empty when the trajectory records none).
     """
 
     positions: jax.Array

@@ -2,6 +2,7 @@
 
     diffgns simulate --scene scenes/column_collapse.toml --frames 200 --out results/sim
     diffgns simulate --column --aspect-ratio 2 --friction-angle 30 --out results/col
+    diffgns simulate --scene scenes/axisymmetric_column_3d.toml --frames 120 --out results/axi3d
     diffgns dataset --kind column --aspect-ratios 0.5 1 2 --friction-angles 25 35 45 \\
         --frames 320 --out data/columns.h5
     diffgns dataset --kind squares --n 20 --frames 320 --out data/squares.h5
@@ -38,7 +39,7 @@ from diffgns.cli.checks import Parser, report_interrupt, signals_as_exceptions
 GROUPS = (data, train, evaluate, invert)
 
 DESCRIPTION = """Differentiable MPM, GNS, hybrid and inverse problems. Commands:
-  simulate  run the MPM on a scene (animation, plots, VTK, HDF5)
+  simulate  run the MPM on a 2D or 3D scene (animation, plots, VTK, HDF5)
   dataset   generate an HDF5 training set (MPM columns or squares, cylinder-flow CFD)
   train     train a particle GNS or a MeshGraphNet
   average   average the weights of fine-tuned GNS models

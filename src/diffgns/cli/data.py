@@ -1,4 +1,5 @@
-"""``diffgns simulate`` (the MPM on a scene, with animation, plots, VTK and HDF5) and
+"""``diffgns simulate`` (the MPM on a 2D or 3D scene, with animation, plots, VTK and HDF5;
+:func:`diffgns.io.outputs.write_outputs` draws each dimension's figures) and
 ``diffgns dataset`` (HDF5 training sets from the MPM or the cylinder-flow CFD)."""
 from __future__ import annotations
 
@@ -178,7 +179,9 @@ def register(sub) -> None:
     s = sub.add_parser("simulate", help="run the MPM on a scene and write animation, plots, "
                        "VTK and HDF5")
     src = s.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="scene TOML file (see scenes/)")
+    src.add_argument("--scene", help="scene TOML file, 2D or 3D (a domain with three axes; "
+                     "see scenes/); a 3D run writes a 3D animation and a top view and radial "
+                     "profile of the deposit")
     src.add_argument("--column", action="store_true",
                      help="a granular column collapse set by the column options below")
     s.add_argument("--width", type=finite, default=0.1, help="column width, m (default 0.1)")

@@ -21,14 +21,20 @@ def _rollout(args) -> int:
     if _is_mesh_model(args.model):
         return _rollout_mesh(args)
     from diffgns.clamp import clamp_warning
+    from diffgns.errors import InputError
     from diffgns.graph.data import load_trajectories
     from diffgns.graph.evaluate import rollout_reference, score
     from diffgns.graph.train_loop import load_model
-    from diffgns.io.figures import animate
 
     gns, params, info = load_model(args.model)
     refs, _ = load_trajectories(args.data, info.get("factor", 1), info.get("frame_stride", 1))
     ref = refs[args.index]
+    dim = int(ref.positions.shape[-1])
+    if dim != gns.config.dim:
+        raise InputError("--data", f"trajectory {args.index} of {args.data} is {dim}D but the "
+                         f"model {args.model} is {gns.config.dim}D",
+                         f"roll a {dim}D model out on it (a GNS runs only in the dimension "
+                         "it was trained in)")
     pred, sec = rollout_reference(gns, params, ref)
     s = score(pred, ref, start=gns.config.history)
     s["rollout_s"] = sec
@@ -38,6 +44,10 @@ def _rollout(args) -> int:
         print(warn)
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
+        if dim == 3:
+            from diffgns.io.figures3d import animate3d as animate
+        else:
+            from diffgns.io.figures import animate
         animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
         (Path(args.out) / "rollout_metrics.json").write_text(json.dumps(s, indent=2))
         print(f"animation written to {args.out}/rollout.gif")

@@ -118,7 +118,8 @@ def run(args) -> int:
                          history=history, block=args.block, theta0=theta0)
     name = args.objective or ("runout" if nodes is not None else "runout-max")
     objective = make_objective(name, obs, observed=nodes, frame=args.frame,
-                               observed_runout=args.observed_runout, origin=args.origin)
+                               observed_runout=args.observed_runout, origin=args.origin,
+                               center=args.center)
     solve(sim, objective, theta0, obs, args.out, transforms=transforms,
           optimizer=args.optimizer, lr=args.lr, max_iter=args.max_iter,
           step_tol=args.step_tol, gradient=args.gradient, observed=nodes, truth=truth,
@@ -158,7 +159,7 @@ def register(sub) -> None:
     o = p.add_mutually_exclusive_group(required=True)
     o.add_argument("--observation", help="observed trajectory, HDF5 (diffgns simulate/dataset)")
     o.add_argument("--observed-runout", type=finite,
-                   help="observed runout, m from --origin")
+                   help="observed runout, m from --origin (3D: radius, m, about --center)")
     p.add_argument("--index", type=int, default=0,
                    help="trajectory of --observation, integer (default 0)")
     p.add_argument("--frames", type=count, default=None,
@@ -172,6 +173,10 @@ def register(sub) -> None:
                    "default -1)")
     p.add_argument("--origin", type=finite, default=None,
                    help="x from which runouts are measured, m (default: the left wall)")
+    p.add_argument("--center", type=finite, nargs=2, default=None, metavar=("CX", "CZ"),
+                   help="3D: measure runouts as the radius about the vertical axis x = CX, "
+                   "z = CZ, m (default: the axis of the scene's cylinder body; else x from "
+                   "--origin)")
     p.add_argument("--simulator", default="mpm", choices=list(SIMULATORS),
                    help="simulator of the forward model (default mpm)")
     p.add_argument("--model", default=None,

@@ -19,23 +19,34 @@ from diffgns.trajectory import Trajectory
 
 
 def coarse_grain_map(x0: np.ndarray, factor: int) -> np.ndarray:
-    """Cluster index (N,) of each particle: particles are binned on a square lattice whose
-    cells hold ~``factor`` particles of the initial configuration ``x0`` (N, 2). factor = 1
-    keeps every particle."""
+    """Cluster index (N,) of each particle: particles are binned on a square (2D) or cubic
+    (3D) lattice whose cells hold ~``factor`` particles of the initial configuration ``x0``
+    (N, d): the cell side is the particles' nearest-neighbour spacing times ``factor^(1/d)``
+    (2D: 16 particles of a 4 x 4 arrangement per node; 3D: 8 of a 2 x 2 x 2 one). Clusters
+    are numbered in lexicographic order of their cells. factor = 1 keeps every particle."""
     if factor == 1:
         return np.arange(len(x0))
+    x0 = np.asarray(x0)
+    dim = x0.shape[-1]
+    if x0.ndim != 2 or dim not in (2, 3):
+        raise ValueError(f"coarse_grain_map: positions must be (N, 2) or (N, 3), got "
+                         f"{x0.shape}")
     probe = np.random.default_rng(0).choice(len(x0), min(len(x0), 256), replace=False)
     d2 = ((x0[probe, None] - x0[None]) ** 2).sum(-1)
     d2[np.arange(len(probe)), probe] = np.inf
     d = np.sqrt(d2.min(1))  # nearest-neighbour spacing of a sample of particles
-    spacing = float(np.median(d)) * np.sqrt(factor)
+    spacing = float(np.median(d)) * (np.sqrt(factor) if dim == 2 else np.cbrt(factor))
     cell = np.floor((x0 - x0.min(0)) / spacing + 1e-6).astype(np.int64)
-    _, idx = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
-    return idx
+    key = cell[:, 0]
+    for k in range(1, dim):  # lexicographic key of the cell (< 1,000,003 cells per axis)
+        key = key * 1_000_003 + cell[:, k]
+    _, idx = np.unique(key, return_inverse=True)
+    return idx.reshape(-1)
 
 
 def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajectory:
-    """Nodes = cluster means of ``factor`` particles; frames every ``frame_stride``-th."""
+    """Nodes = cluster means of ``factor`` particles (:func:`coarse_grain_map`, 2D or 3D);
+    frames every ``frame_stride``-th."""
     pos = np.asarray(traj.positions)[::frame_stride]
     vel = np.asarray(traj.velocities)[::frame_stride]
     ptype = np.asarray(traj.particle_type)
@@ -71,6 +82,20 @@ def load_trajectories(path: str | Path, factor: int = 1, frame_stride: int = 1
     return trajs, meta
 
 
+def check_one_dimension(trajs, what: str = "the trajectories") -> int:
+    """The spatial dimension (2 or 3) shared by ``trajs`` (positions (T, N, d)); ValueError
+    naming the counts when they mix dimensions (one GNS is for one d)."""
+    dims: dict[int, int] = {}
+    for t in trajs:
+        d = int(np.shape(t.positions)[-1])
+        dims[d] = dims.get(d, 0) + 1
+    if len(dims) != 1:
+        got = ", ".join(f"{n} {d}D" for d, n in sorted(dims.items())) or "none"
+        raise ValueError(f"{what} mix dimensions ({got}); a GNS is trained on one: give only "
+                         "2D or only 3D datasets")
+    return next(iter(dims))
+
+
 def frame_statistics(trajs: list[Trajectory]) -> dict:
     """Velocity and acceleration mean/std in frame units over ``trajs`` (after striding and
     coarse-graining, so they match what the GNS sees); see :func:`compute_statistics`."""
@@ -82,13 +107,15 @@ class WindowSampler:
     """Random windows of ``history + 2 + unroll`` frames, one node-count group per batch,
     each with the walls and box obstacles of its trajectory (``Trajectory.bounds``,
     ``Trajectory.obstacles``), the obstacles padded to the most any trajectory has
-    (:data:`diffgns.graph.geometry.PARKED`)."""
+    (:func:`diffgns.graph.geometry.parked`). The trajectories must share one dimension
+    (2D or 3D)."""
 
     trajs: list
     history: int = 5
     unroll: int = 0
 
     def __post_init__(self):
+        check_one_dimension(self.trajs, "the training trajectories")
         self.max_obstacles = max([len(getattr(t, "obstacles", ())) for t in self.trajs] + [0])
         self.groups: dict[int, list[int]] = {}
         for i, t in enumerate(self.trajs):
@@ -105,8 +132,8 @@ class WindowSampler:
 
     def sample(self, rng: np.random.Generator, batch: int,
                group_rng: np.random.Generator | None = None) -> dict:
-        """A batch: positions (B, L, N, 2), particle_type (B, N), material (B, N), walls
-        (B, 2, 2) m, obstacles (B, K, 4) m. The node-count group is drawn from
+        """A batch: positions (B, L, N, d), particle_type (B, N), material (B, N), walls
+        (B, d, 2) m, obstacles (B, K, 2d) m. The node-count group is drawn from
         ``group_rng`` when given (several steps drawn with one such generator share a group,
         so they run in one device call), else from ``rng``."""
         n = self._keys[(group_rng or rng).choice(len(self._keys), p=self._p)]
@@ -122,14 +149,15 @@ class WindowSampler:
             ptype.append(p)
             mat.append(m)
             walls.append(walls_array(t.bounds))
-            obs.append(obstacle_array(getattr(t, "obstacles", ()), self.max_obstacles))
+            obs.append(obstacle_array(getattr(t, "obstacles", ()), self.max_obstacles,
+                                      len(t.bounds)))
         dtype = pos[0].dtype
         return dict(positions=np.stack(pos), particle_type=np.stack(ptype),
                     material=np.stack(mat), walls=np.stack(walls).astype(dtype),
                     obstacles=np.stack(obs).astype(dtype))
 
     def window(self, t: Trajectory, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The window of ``t`` from frame ``start``: positions (L, N, 2), particle_type
+        """The window of ``t`` from frame ``start``: positions (L, N, d), particle_type
         (N,), material (N,)."""
         return (np.asarray(t.positions[start:start + self.length]),
                 np.asarray(t.particle_type), np.asarray(t.material))

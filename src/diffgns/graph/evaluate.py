@@ -2,8 +2,10 @@
 
 Metrics (against the reference, e.g. the MPM trajectory the GNS starts from):
 runout error |L_gns - L_ref| / (L_ref - x_wall) of the farthest particle at the last frame
-(columns against the left wall), the same from the back of the initial mass in the flow's
-direction for any scene (``flow_runout_*``, :func:`diffgns.metrics.flow_runout`),
+(2D: columns against the left wall; 3D: L is the largest horizontal distance from the
+vertical axis through the reference's initial centroid, an axisymmetric collapse's runout
+radius), the same from the back of the initial mass in the flow's direction along x for any
+scene (``flow_runout_*``, :func:`diffgns.metrics.flow_runout`),
 mean particle position error at the last frame relative to the mean reference displacement,
 position MSE at horizons 1, 10, 50, 100 and the full rollout, and the final kinetic energy.
 """
@@ -24,7 +26,7 @@ HORIZONS = (1, 10, 50, 100)
 def reference_inputs(gns: GNS, network, ref: Trajectory, extra_capacity: int = 0
                      ) -> tuple[GNSParams, GNSState, int]:
     """Rollout inputs from the first ``history + 1`` frames of ``ref``: ``(GNSParams (network,
-    material (N,) of ``ref``), initial GNSState (history (N, C+1, 2) m, allocated neighbour
+    material (N,) of ``ref``), initial GNSState (history (N, C+1, d) m, allocated neighbour
     list, ``ref``'s walls and obstacles), number of frames to predict)`` (outside jit:
     allocates). ``gns`` must be built for ``ref``'s box (:meth:`GNS.for_box`)."""
     C = gns.config.history
@@ -67,13 +69,19 @@ def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = 
 
 def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | None = None
           ) -> dict:
-    """Accuracy of ``pred`` against ``ref`` (same particles, same frames); ``start`` is the
-    index of the last frame given to the simulator (horizon h is frame start + h)."""
+    """Accuracy of ``pred`` against ``ref`` (same particles, same frames, 2D or 3D);
+    ``start`` is the index of the last frame given to the simulator (horizon h is frame
+    start + h). The runout is measured from ``wall_x`` (2D; default the left wall) or, in
+    3D, as a radius about the vertical axis through ``ref``'s initial centroid."""
     xp, xr = np.asarray(pred.positions), np.asarray(ref.positions)
     T = min(len(xp), len(xr))
     xp, xr = xp[:T], xr[:T]
-    wall_x = float(ref.bounds[0][0]) if wall_x is None else wall_x
-    Lp, Lr = xp[-1, :, 0].max() - wall_x, xr[-1, :, 0].max() - wall_x
+    if xr.shape[-1] == 3:
+        axis = xr[0][:, [0, 2]].mean(0)  # (x, z) of the vertical axis, m
+        Lp, Lr = (np.hypot(*(x[-1][:, [0, 2]] - axis).T).max() for x in (xp, xr))
+    else:
+        wall_x = float(ref.bounds[0][0]) if wall_x is None else wall_x
+        Lp, Lr = xp[-1, :, 0].max() - wall_x, xr[-1, :, 0].max() - wall_x
     err = np.sqrt(((xp[-1] - xr[-1]) ** 2).sum(-1)).mean()
     disp = np.sqrt(((xr[-1] - xr[0]) ** 2).sum(-1)).mean()
     mse = ((xp - xr) ** 2).sum(-1).mean(-1)  # (T,)
@@ -92,9 +100,9 @@ def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | Non
     back_p, _ = metrics.flow_runout(xr[0], xp[-1], direction)
     out.update(flow_direction=direction, flow_runout_ref_m=back_r, flow_runout_pred_m=back_p,
                flow_runout_rel_error=float(abs(back_p - back_r) / max(back_r, 1e-12)))
-    (x0, x1), (y0, y1) = ref.bounds
-    out["inside_domain"] = bool(((xp[..., 0] >= x0 - 1e-6) & (xp[..., 0] <= x1 + 1e-6)
-                                 & (xp[..., 1] >= y0 - 1e-6) & (xp[..., 1] <= y1 + 1e-6)).all())
+    box = np.asarray(ref.bounds, float)  # (d, 2), compared in the positions' precision
+    lo, hi = (box[:, 0] - 1e-6).astype(xp.dtype), (box[:, 1] + 1e-6).astype(xp.dtype)
+    out["inside_domain"] = bool(((xp >= lo) & (xp <= hi)).all())
     v = np.diff(xp, axis=0) / pred.frame_dt
     ke = metrics.kinetic_energy(jnp.asarray(v), jnp.ones(v.shape[1]))
     out["final_kinetic_energy_per_kg"] = float(ke[-1]) / v.shape[1]

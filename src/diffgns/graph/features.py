@@ -4,18 +4,23 @@ Units: positions in m (the dataset's position unit); time in **frames**, so a ve
 displacement per frame (m/frame) and an acceleration a displacement per frame^2 (m/frame^2),
 as in the dataset metadata (``vel_mean``/``vel_std``, ``acc_mean``/``acc_std``).
 
+Every function here is dimension-generic: positions are ``(..., d)`` with d = 2 (x, y) or
+3 (x, y, z; y vertical in both), and the width of every feature follows from d (one code
+path; :func:`n_node_features`).
+
 A *history* is the array of the last ``C + 1`` positions of every particle, shape
-``(N, C + 1, 2)``, oldest first; ``history[:, -1]`` is the current position. Its ``C``
+``(N, C + 1, d)``, oldest first; ``history[:, -1]`` is the current position. Its ``C``
 finite differences are the input velocities.
 
 Node features (:func:`node_features`), in this order along the last axis:
 
 1. the ``C`` velocities, normalised with the velocity :class:`Normalizer`, flattened
-   (``2 C`` columns, time-major: ``v_0x, v_0y, v_1x, ...``);
-2. the distances of the current position to the 4 walls ``(x - xmin, y - ymin, xmax - x,
-   ymax - y)`` divided by the radius ``R`` and clipped to ``[-1, 1]`` (4 columns);
+   (``d C`` columns, time-major: ``v_0x, v_0y, (v_0z,) v_1x, ...``);
+2. the distances of the current position to the ``2 d`` walls ``(x - xmin, y - ymin,
+   (z - zmin,) xmax - x, ymax - y (, zmax - z))`` divided by the radius ``R`` and clipped
+   to ``[-1, 1]`` (``2 d`` columns);
 3. optionally (``obstacles`` given) the nearest box obstacle, :func:`obstacle_distances`
-   (3 columns);
+   (``1 + d`` columns);
 4. optionally the raw material feature ``tan(phi)`` (1 column, not normalised).
 
 The particle type is not a feature here: the network embeds it. Absolute position never
@@ -29,12 +34,12 @@ reference GNS: a static axis-aligned box is described exactly by its distance fi
 feature costs O(N K) per step for K obstacles (boundary particles would add ~4 nodes per
 0.05 m of surface at the node spacing of coarse-graining 16, each with its edges, to a step
 whose cost is ~65% edge MLPs), needs no kinematic type to mask from the loss, and a
-particle sees the same three numbers in front of a wall and of an obstacle face.
+particle sees the same ``1 + d`` numbers in front of a wall and of an obstacle face.
 Models trained without obstacles (every shipped model) pass ``obstacles=None`` and get
 exactly their old features.
 
 Edge features (:func:`edge_features`): ``(x_sender - x_receiver) / R`` and its norm,
-``(E, 3)``, zero on masked edges; the norm uses a safe square root (finite gradient at 0,
+``(E, d + 1)``, zero on masked edges; the norm uses a safe square root (finite gradient at 0,
 needed for self-edges).
 """
 from __future__ import annotations
@@ -128,46 +133,60 @@ class ParticleStats:
 
 
 def velocities(history: jax.Array) -> jax.Array:
-    """(N, C+1, 2) positions -> (N, C, 2) velocities in m/frame (finite differences)."""
+    """(N, C+1, d) positions -> (N, C, d) velocities in m/frame (finite differences)."""
     return history[:, 1:] - history[:, :-1]
 
 
 def wall_distances(x: jax.Array, walls, radius: float) -> jax.Array:
-    """(N, 2) positions -> (N, 4) ``(x - xmin, y - ymin, xmax - x, ymax - y) / R`` in [-1, 1].
+    """(N, d) positions -> (N, 2d) ``(x - lower, upper - x) / R`` in [-1, 1]: in 2D
+    ``(x - xmin, y - ymin, xmax - x, ymax - y) / R``, in 3D ``(x - xmin, y - ymin, z - zmin,
+    xmax - x, ymax - y, zmax - z) / R``.
 
-    ``walls``: ``((xmin, xmax), (ymin, ymax))`` m, as a tuple (static) or a (2, 2) array
-    (traced, e.g. :attr:`diffgns.graph.geometry.Geometry.walls`)."""
+    ``walls``: ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` m, as a tuple (static) or a
+    (d, 2) array (traced, e.g. :attr:`diffgns.graph.geometry.Geometry.walls`); ValueError
+    when d differs from the positions'."""
     walls = jnp.asarray(walls, dtype=x.dtype)
+    if walls.shape != (x.shape[-1], 2):
+        raise ValueError(f"walls {walls.shape} do not match {x.shape[-1]}D positions: give "
+                         f"({x.shape[-1]}, 2) [lo, hi] per axis")
     lower, upper = walls[:, 0], walls[:, 1]
     d = jnp.concatenate([x - lower, upper - x], axis=-1) / radius
     return jnp.clip(d, -1.0, 1.0)
 
 
 def obstacle_distances(x: jax.Array, obstacles, radius: float) -> jax.Array:
-    """(N, 2) positions -> (N, 3) ``[s, w n_x, w n_y]`` of the nearest box obstacle.
+    """(N, d) positions -> (N, 1 + d) ``[s, w n]`` of the nearest box obstacle (2D ``[s, w n_x,
+    w n_y]``, 3D ``[s, w n_x, w n_y, w n_z]``).
 
     ``s = clip(d / R, -1, 1)`` with ``d`` the signed distance (m) to the nearest obstacle
     (> 0 outside, < 0 inside), ``n`` the unit outward normal of that obstacle at the particle
     (outside: from the nearest surface point to the particle; inside: of the nearest face),
     ``w = 1 - clip(d / R, 0, 1)``: the normal fades out linearly over ``R``. Farther than
     ``R`` from every obstacle, and with no obstacle at all (K = 0), the features are exactly
-    ``(1, 0, 0)``, like a clipped wall distance. Continuous outside the obstacles; gradients
+    ``(1, 0, ..., 0)``, like a clipped wall distance. Continuous outside the obstacles; gradients
     are finite everywhere (safe norm).
 
     Args:
-        x: (N, 2) positions, m.
-        obstacles: (K, 4) ``[x0, y0, x1, y1]`` boxes, m (K >= 0).
+        x: (N, d) positions, m.
+        obstacles: (K, 2d) ``[lo..., hi...]`` boxes (2D ``[x0, y0, x1, y1]``, 3D ``[x0, y0,
+            z0, x1, y1, z1]``), m (K >= 0).
         radius: connectivity radius R, m.
     """
-    obs = jnp.asarray(obstacles, x.dtype).reshape(-1, 4)
+    dim = x.shape[-1]
+    obs = jnp.asarray(obstacles, x.dtype)
+    if obs.size and obs.shape[-1] != 2 * dim:
+        raise ValueError(f"obstacles {obs.shape} do not match {dim}D positions: give "
+                         f"(K, {2 * dim}) boxes [lo..., hi...]")
+    obs = obs.reshape(-1, 2 * dim)
     if obs.shape[0] == 0:
-        return jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0], x.dtype), (x.shape[0], 3))
-    lo, hi = obs[None, :, :2], obs[None, :, 2:]  # (1, K, 2)
-    p = x[:, None, :]  # (N, 1, 2)
-    out = p - jnp.clip(p, lo, hi)  # (N, K, 2) nearest surface point -> p; 0 inside
+        none = jnp.asarray([1.0] + [0.0] * dim, x.dtype)
+        return jnp.broadcast_to(none, (x.shape[0], 1 + dim))
+    lo, hi = obs[None, :, :dim], obs[None, :, dim:]  # (1, K, d)
+    p = x[:, None, :]  # (N, 1, d)
+    out = p - jnp.clip(p, lo, hi)  # (N, K, d) nearest surface point -> p; 0 inside
     dist_out = _safe_norm(out)[..., 0]
     centre, half = (lo + hi) / 2, (hi - lo) / 2
-    q = jnp.abs(p - centre) - half  # (N, K, 2) < 0 on both axes inside
+    q = jnp.abs(p - centre) - half  # (N, K, d) < 0 on every axis inside
     depth = jnp.max(q, axis=-1)  # inside: -(distance to the nearest face)
     inside = depth < 0
     signed = jnp.where(inside, depth, dist_out)
@@ -175,8 +194,8 @@ def obstacle_distances(x: jax.Array, obstacles, radius: float) -> jax.Array:
     take = jax.vmap(lambda a, i: a[i])
     d, ins = take(signed, k), take(inside, k)
     face = jnp.argmax(take(q, k), axis=-1)  # (N,) axis of the nearest face when inside
-    sign = jnp.sign(take(p - centre, k))  # (N, 2)
-    n_in = jnp.where(jnp.arange(2)[None] == face[:, None], sign, 0.0)
+    sign = jnp.sign(take(p - centre, k))  # (N, d)
+    n_in = jnp.where(jnp.arange(dim)[None] == face[:, None], sign, 0.0)
     safe = jnp.where(dist_out > 0, dist_out, 1.0)
     n_out = take(out / safe[..., None], k)
     n = jnp.where(ins[:, None], n_in, n_out)
@@ -186,9 +205,10 @@ def obstacle_distances(x: jax.Array, obstacles, radius: float) -> jax.Array:
 
 
 def n_node_features(history: int = 5, use_material: bool = True,
-                    use_obstacles: bool = False) -> int:
-    """Width F of :func:`node_features`: ``2 C + 4 (+ 3) (+ 1)``."""
-    return 2 * history + 4 + 3 * int(use_obstacles) + int(use_material)
+                    use_obstacles: bool = False, dim: int = 2) -> int:
+    """Width F of :func:`node_features` in ``dim`` dimensions: ``d C + 2 d (+ 1 + d) (+ 1)``
+    (2D: ``2 C + 4 (+ 3) (+ 1)``)."""
+    return dim * history + 2 * dim + (1 + dim) * int(use_obstacles) + int(use_material)
 
 
 def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Normalizer,
@@ -196,17 +216,18 @@ def node_features(history: jax.Array, bounds, radius: float, vel_normalizer: Nor
     """Node features of a position history.
 
     Args:
-        history: (N, C+1, 2) positions in m, oldest first.
-        bounds: the walls ``((xmin, xmax), (ymin, ymax))`` in m (tuple or (2, 2) array).
+        history: (N, C+1, d) positions in m, oldest first (d = 2 or 3).
+        bounds: the walls ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` in m (tuple or
+            (d, 2) array).
         radius: connectivity radius R in m.
         vel_normalizer: velocity normaliser (m/frame).
         material: optional (N,) or scalar raw material feature (tan of the friction angle);
             a scalar is broadcast to all particles (as in the inverse problems).
-        obstacles: optional (K, 4) box obstacles ``[x0, y0, x1, y1]`` in m (K >= 0): adds
+        obstacles: optional (K, 2d) box obstacles ``[lo..., hi...]`` in m (K >= 0): adds
             :func:`obstacle_distances`; None (every shipped model) adds nothing.
 
     Returns:
-        (N, 2C + 4 (+ 3) (+ 1)) features (see the module docstring for the order).
+        (N, d C + 2 d (+ 1 + d) (+ 1)) features (see the module docstring for the order).
     """
     n = history.shape[0]
     vel = vel_normalizer.normalize(velocities(history)).reshape(n, -1)
@@ -227,9 +248,10 @@ def _safe_norm(d: jax.Array) -> jax.Array:
 
 def edge_features(x: jax.Array, senders: jax.Array, receivers: jax.Array, mask: jax.Array,
                   radius: float) -> jax.Array:
-    """(E, 3) edge features ``[(x_s - x_r)/R, |x_s - x_r|/R]``, zero where ``mask`` is False.
+    """(E, d + 1) edge features ``[(x_s - x_r)/R, |x_s - x_r|/R]``, zero where ``mask`` is
+    False.
 
-    ``x`` is (N, 2) in m; ``senders``/``receivers`` (E,) int may hold the padding index N.
+    ``x`` is (N, d) in m; ``senders``/``receivers`` (E,) int may hold the padding index N.
     """
     xs = jnp.take(x, senders, axis=0, mode="clip")
     xr = jnp.take(x, receivers, axis=0, mode="clip")
@@ -249,12 +271,12 @@ def random_walk_noise(key: jax.Array, position_sequence: jax.Array, sigma: float
 
     Args:
         key: PRNG key.
-        position_sequence: (N, C+1, 2) input positions (only shape and dtype are used).
+        position_sequence: (N, C+1, d) input positions (only shape and dtype are used).
         sigma: noise scale in m.
         particle_type: optional (N,) int types.
 
     Returns:
-        (N, C+1, 2) position noise to *add* to the inputs. Use :func:`target_acceleration`
+        (N, C+1, d) position noise to *add* to the inputs. Use :func:`target_acceleration`
         to correct the training target for the noise on the last position.
     """
     n, cp1, dim = position_sequence.shape
@@ -279,12 +301,12 @@ def target_acceleration(next_position: jax.Array, history: jax.Array,
     clean next position.
 
     Args:
-        next_position: (N, 2) clean position at t+1, in m.
-        history: (N, C+1, 2) clean input positions, in m.
-        noise: optional (N, C+1, 2) noise added to the inputs (:func:`random_walk_noise`).
+        next_position: (N, d) clean position at t+1, in m.
+        history: (N, C+1, d) clean input positions, in m.
+        noise: optional (N, C+1, d) noise added to the inputs (:func:`random_walk_noise`).
 
     Returns:
-        (N, 2) target acceleration in m/frame^2 (not normalised).
+        (N, d) target acceleration in m/frame^2 (not normalised).
     """
     if noise is not None:
         history = history + noise

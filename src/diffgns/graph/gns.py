@@ -15,6 +15,12 @@ The walls and obstacles the network sees are an input (:class:`~diffgns.graph.ge
 the extent of the neighbour list's cells, so one model trains on boxes of several sizes and
 runs in one it was not trained in (:meth:`GNS.for_box`).
 
+One code path for 2D and 3D: the dimension d is ``len(GNSConfig.bounds)``
+(:attr:`GNSConfig.dim`, 2 or 3; y is vertical in both), and it sets the width of the node
+and edge features and of the network's output. A model is for one d: positions, walls or a
+scene of the other dimension are refused with a message (:meth:`GNS.init`,
+:meth:`GNS.for_box`, :meth:`GNS.features`).
+
 The GNS is a :class:`diffgns.interface.Simulator`::
 
     state = gns.init(history, particle_type)          # allocates the neighbour list
@@ -51,10 +57,11 @@ class GNSConfig:
     """Static configuration of a particle GNS (hashable; usable as a jit static argument).
 
     Attributes:
-        bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain in m: the extent of the cell
-            list and the default walls (a state's or a training window's
-            :class:`~diffgns.graph.geometry.Geometry` gives the walls the network sees; every
-            wall must lie inside ``bounds``).
+        bounds: ``((xmin, xmax), (ymin, ymax))`` (2D) or ``((xmin, xmax), (ymin, ymax),
+            (zmin, zmax))`` (3D) of the domain in m: the dimension of the model
+            (:attr:`dim`), the extent of the cell list and the default walls (a state's or a
+            training window's :class:`~diffgns.graph.geometry.Geometry` gives the walls the
+            network sees; every wall must lie inside ``bounds``).
         radius: connectivity radius R in m (pairs with distance < R are connected).
         latent: latent width (and MLP hidden width).
         mp_steps: message-passing steps.
@@ -68,7 +75,8 @@ class GNSConfig:
         capacity_multiplier: neighbour-list head-room factor.
         use_material: feed the raw material feature (tan phi) as a node feature.
         use_obstacles: feed the distance and normal to the nearest box obstacle as node
-            features (:func:`~diffgns.graph.features.obstacle_distances`; 3 more inputs).
+            features (:func:`~diffgns.graph.features.obstacle_distances`; 1 + d more
+            inputs).
         clamp_to_bounds: keep predicted positions inside the walls (of the state's
             geometry), so no
             particle ever leaves the domain however inaccurate the network. Never silent:
@@ -95,7 +103,7 @@ class GNSConfig:
         bounds = tuple((float(lo), float(hi)) for lo, hi in self.bounds)
         object.__setattr__(self, "bounds", bounds)
         checks = {
-            "bounds": len(bounds) == 2 and all(lo < hi for lo, hi in bounds),
+            "bounds": len(bounds) in (2, 3) and all(lo < hi for lo, hi in bounds),
             "radius": self.radius > 0, "latent": self.latent > 0,
             "mp_steps": self.mp_steps >= 0, "mlp_layers": self.mlp_layers >= 1,
             "history": self.history >= 1, "noise_std": self.noise_std >= 0,
@@ -105,6 +113,11 @@ class GNSConfig:
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"invalid GNSConfig field(s) {bad}: {self}")
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension d of the model, 2 or 3: the number of axes of ``bounds``."""
+        return len(self.bounds)
 
 
 class GNSParams(NamedTuple):
@@ -161,36 +174,52 @@ class GNS:
         self.normalizer = normalizer
         self.network = EncodeProcessDecode(
             latent=config.latent, mp_steps=config.mp_steps, mlp_layers=config.mlp_layers,
-            n_types=config.n_types, type_embed=config.type_embed, attention=config.attention)
+            n_types=config.n_types, type_embed=config.type_embed, attention=config.attention,
+            out=config.dim)
         self.neighbors = NeighborBuilder(config.bounds, config.radius,
                                          config.capacity_multiplier)
 
     def for_box(self, bounds) -> GNS:
         """This GNS (same network, normaliser and frame) with the neighbour-list extent and
-        default walls of another box ``((xmin, xmax), (ymin, ymax))`` m, e.g. a longer one
-        than training's; ``self`` if it is the same box."""
+        default walls of another box ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` m, e.g.
+        a longer one than training's; ``self`` if it is the same box. ValueError for a box
+        of another dimension than the model's."""
         bounds = tuple((float(lo), float(hi)) for lo, hi in bounds)
         if bounds == self.config.bounds:
             return self
+        self.check_dim(len(bounds), f"the box {list(bounds)} m")
         return GNS(dataclasses.replace(self.config, bounds=bounds), self.normalizer,
                    self.frame_dt)
 
     def geometry(self, obstacles=(), pad_to: int = 0, bounds=None) -> Geometry:
         """:class:`Geometry` of the walls ``bounds`` (default the config's box) and box
-        ``obstacles`` ``[x0, y0, x1, y1]`` m (padded to ``pad_to`` rows)."""
-        return Geometry.of(self.config.bounds if bounds is None else bounds, obstacles, pad_to)
+        ``obstacles`` ``[lo..., hi...]`` m (2D ``[x0, y0, x1, y1]``; padded to ``pad_to``
+        rows)."""
+        bounds = self.config.bounds if bounds is None else bounds
+        self.check_dim(len(bounds), f"the walls {[list(b) for b in bounds]} m")
+        return Geometry.of(bounds, obstacles, pad_to)
+
+    def check_dim(self, dim: int, what: str) -> None:
+        """ValueError naming ``what`` unless ``dim`` is the model's dimension."""
+        if dim != self.config.dim:
+            raise ValueError(
+                f"{what} is {dim}D but this GNS is a {self.config.dim}D model (bounds "
+                f"{[list(b) for b in self.config.bounds]} m); a model runs only in the "
+                f"dimension it was trained in: use a model trained on {dim}D data "
+                f"(diffgns train --data <{dim}D dataset>)")
 
     def for_scene(self, scene) -> tuple[GNS, Geometry]:
         """(this GNS for ``scene``'s box (:meth:`for_box`), the scene's :class:`Geometry`:
         its walls and box obstacles) -- what every scene-driven rollout (inverse, hybrid,
         command line) hands the network."""
+        self.check_dim(len(scene.domain), "the scene")
         g = self.for_box(scene.domain)
-        obs = [(o.x0, o.y0, o.x1, o.y1) for o in getattr(scene, "obstacles", ())]
+        obs = [tuple(o.lower) + tuple(o.upper) for o in getattr(scene, "obstacles", ())]
         return g, g.geometry(obs)
 
     # ----------------------------------------------------------------- network
     def init_network(self, key: jax.Array, example_inputs) -> dict:
-        """Network params for ``example_inputs = (history (N, C+1, 2), particle_type (N,)
+        """Network params for ``example_inputs = (history (N, C+1, d), particle_type (N,)
         [, material (N,)])``; a self-edge graph is used (param shapes do not depend on E).
 
         Flax's default initial distributions, drawn by :func:`~.networks.init_params` (fast
@@ -208,15 +237,17 @@ class GNS:
 
     def features(self, history, material, senders, receivers, mask,
                  geometry: Geometry | None = None):
-        """(node_features (N, F), edge_features (E, 3)) of a history and a graph;
+        """(node_features (N, F), edge_features (E, d + 1)) of a history and a graph;
         ``geometry``: the walls and obstacles (default: the config's box, no obstacle)."""
         cfg = self.config
-        if history.shape[1] != cfg.history + 1:
-            raise ValueError(f"history must be (N, {cfg.history + 1}, 2), got {history.shape}")
+        if history.ndim != 3 or history.shape[1] != cfg.history + 1:
+            raise ValueError(f"history must be (N, {cfg.history + 1}, {cfg.dim}), got "
+                             f"{history.shape}")
+        self.check_dim(history.shape[-1], f"the history {tuple(history.shape)}")
         walls = cfg.bounds if geometry is None else geometry.walls
         obstacles = None
         if cfg.use_obstacles:
-            obstacles = (jnp.zeros((0, 4), history.dtype) if geometry is None
+            obstacles = (jnp.zeros((0, 2 * cfg.dim), history.dtype) if geometry is None
                          else geometry.obstacles)
         nf = node_features(history, walls, cfg.radius, self.normalizer.velocity,
                            material if cfg.use_material else None, obstacles)
@@ -226,17 +257,17 @@ class GNS:
     def normalized_acceleration(self, params, history, particle_type, material, senders,
                                 receivers, mask, geometry: Geometry | None = None
                                 ) -> jax.Array:
-        """(N, 2) network output: the normalised acceleration (what the loss compares)."""
+        """(N, d) network output: the normalised acceleration (what the loss compares)."""
         nf, ef = self.features(history, material, senders, receivers, mask, geometry)
         return self.network.apply(params, nf, particle_type, ef, senders, receivers, mask)
 
     def acceleration(self, params, history, particle_type, material, senders, receivers,
                      mask, geometry: Geometry | None = None) -> jax.Array:
-        """(N, 2) predicted acceleration in m/frame^2 (denormalised).
+        """(N, d) predicted acceleration in m/frame^2 (denormalised).
 
         Args:
             params: network params from :meth:`init`.
-            history: (N, C+1, 2) positions in m, oldest first.
+            history: (N, C+1, d) positions in m, oldest first.
             particle_type: (N,) int.
             material: (N,) raw material feature (tan phi); ignored if not ``use_material``.
             senders, receivers, mask: (E,) graph from :func:`~diffgns.graph.neighbors.edges`.
@@ -263,19 +294,22 @@ class GNS:
             extra_capacity: edge slots per particle above the list's head-room.
             geometry: walls and obstacles the network sees (default :meth:`geometry`: the
                 config's box, no obstacle); walls outside the config's box are refused (the
-                neighbour list covers only that box: use :meth:`for_box`).
+                neighbour list covers only that box: use :meth:`for_box`). Positions or
+                walls of another dimension than the model's are refused.
         """
         history = jnp.asarray(history)
+        C = self.config.history
+        if history.ndim != 3 or history.shape[1] != C + 1:
+            raise ValueError(f"history must be (N, {C + 1}, d), got {history.shape}")
+        self.check_dim(history.shape[-1], f"the history {tuple(history.shape)}")
         geometry = self.geometry() if geometry is None else geometry
         walls = np.asarray(geometry.walls)
+        self.check_dim(walls.shape[0], f"the geometry's walls {walls.tolist()} m")
         box = np.asarray(self.config.bounds)
         if np.any(walls[:, 0] < box[:, 0] - 1e-6) or np.any(walls[:, 1] > box[:, 1] + 1e-6):
             raise ValueError(f"GNS.init: walls {walls.tolist()} m reach outside the GNS's box "
                              f"{box.tolist()} m (its neighbour list's extent); build the GNS "
                              "for the scene's box with gns.for_box(bounds)")
-        C = self.config.history
-        if history.ndim != 3 or history.shape[1] != C + 1:
-            raise ValueError(f"history must be (N, {C + 1}, d), got {history.shape}")
         nbrs = self.allocate(history[:, -1], extra_capacity)
         kin = None if kinematic_path is None else jnp.asarray(kinematic_path, history.dtype)
         geometry = Geometry(jnp.asarray(geometry.walls, history.dtype),

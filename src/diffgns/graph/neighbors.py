@@ -49,11 +49,12 @@ __all__ = [
 
 
 def _as_bounds(bounds) -> tuple[tuple[float, float], ...]:
-    """Normalise ``((xmin, xmax), (ymin, ymax))`` to a hashable tuple of float pairs."""
+    """Normalise ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` to a hashable tuple of
+    float pairs (2 or 3 of them)."""
     out = tuple((float(lo), float(hi)) for lo, hi in bounds)
-    if len(out) != 2 or any(hi <= lo for lo, hi in out):
-        raise ValueError(f"bounds must be ((xmin, xmax), (ymin, ymax)) with min < max, "
-                         f"got {bounds!r}")
+    if len(out) not in (2, 3) or any(hi <= lo for lo, hi in out):
+        raise ValueError(f"bounds must be ((xmin, xmax), (ymin, ymax)[, (zmin, zmax)]) with "
+                         f"min < max, got {bounds!r}")
     return out
 
 
@@ -61,7 +62,9 @@ class NeighborBuilder:
     """Allocates and updates jax-md sparse neighbour lists for a fixed domain and radius.
 
     Args:
-        bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain, in position units (m).
+        bounds: ``((xmin, xmax), (ymin, ymax))`` of the domain, in position units (m), or
+            ``((xmin, xmax), (ymin, ymax), (zmin, zmax))`` in 3D (one code path: jax-md's
+            cell list and all-pairs list are dimension-generic).
         radius: connectivity radius ``R`` (same units); pairs with ``d < R`` are neighbours.
         capacity_multiplier: head-room factor for the edge buffer and cell list (>= 1).
         all_pairs_max: largest particle count that uses the all-pairs candidate list
@@ -91,7 +94,7 @@ class NeighborBuilder:
         return x - jnp.asarray(self.lower, dtype=x.dtype)
 
     def allocate(self, x: jax.Array, extra_capacity: int = 0) -> partition.NeighborList:
-        """Allocate a list for positions ``x`` (N, 2). Not jittable (shapes depend on values).
+        """Allocate a list for positions ``x`` (N, d). Not jittable (shapes depend on values).
 
         ``extra_capacity`` adds ``N * extra_capacity`` edge slots and ``extra_capacity`` slots
         per cell on top of ``capacity_multiplier`` times the current need.
@@ -115,7 +118,7 @@ class NeighborBuilder:
         return self.allocate(x, extra_capacity=extra)
 
     def update(self, x: jax.Array, nbrs: partition.NeighborList) -> partition.NeighborList:
-        """Rebuild the list for positions ``x`` (N, 2) with the same capacity (jit-safe)."""
+        """Rebuild the list for positions ``x`` (N, d) with the same capacity (jit-safe)."""
         with _jax_md_x64_scatter_warning_ignored():
             return nbrs.update(self._shift(x))
 

@@ -14,7 +14,7 @@ Shapes: N nodes, E edges (fixed size, with a validity mask), L = ``latent``.
 
   Messages are summed at the receiver with ``jax.ops.segment_sum``; masked (padded) edges
   contribute zero and their latents are kept at zero.
-* Decoder: MLP to the output (2), no LayerNorm.
+* Decoder: MLP to the output (d = 2 or 3: the normalised acceleration), no LayerNorm.
 
 The first layer of the edge MLP, ``W [e, v_s, v_r] + b``, is computed as
 ``W_e e + (W_s v)[s] + (W_r v)[r] + b`` (:class:`SplitEdgeDense`): the node projections
@@ -147,7 +147,7 @@ class EncodeProcessDecode(nn.Module):
         n_types: number of particle types for the embedding (9).
         type_embed: width of the particle-type embedding (16).
         attention: softmax attention over incoming edges instead of a plain sum.
-        out: output width (2: the normalised acceleration).
+        out: output width (the dimension d, 2 or 3: the normalised acceleration).
     """
 
     latent: int = 128

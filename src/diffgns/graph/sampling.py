@@ -9,8 +9,8 @@ Random scenes have many node counts (~100 in 200 trajectories of the granular da
 every count is one more compilation of the training step. With ``pad_to = k`` the sampler
 groups trajectories by their node count rounded up to a multiple of ``k`` and pads each
 window with :func:`pad_nodes`: kinematic nodes (type 3: masked from the loss, no training
-noise) parked in a row ``2 R`` below the floor, ``1.5 R`` apart, so they have no edge to any
-particle in the box nor to each other, and the loss and every real node's prediction are
+noise) parked in a row ``2 R`` below the floor (2D and 3D), ``1.5 R`` apart, so they have no
+edge to any particle in the box nor to each other, and the loss and every real node's prediction are
 those of the unpadded window.
 """
 from __future__ import annotations
@@ -31,25 +31,31 @@ def pad_nodes(positions: np.ndarray, particle_type: np.ndarray, material: np.nda
     """Pad one window to ``n_total`` nodes with parked kinematic nodes.
 
     Args:
-        positions: (L, N, 2) window, m; particle_type, material: (N,).
+        positions: (L, N, d) window, m; particle_type, material: (N,).
         n_total: node count after padding (>= N).
-        bounds: ``((xmin, xmax), (ymin, ymax))`` of the box the real nodes are in, m.
+        bounds: ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` of the box the real nodes
+            are in, m.
         radius: connectivity radius R, m.
 
     Returns:
-        positions (L, n_total, 2) with the padding nodes at ``(xmin + 1.5 R k, ymin - 2 R)``
-        in every frame, particle_type (n_total,) with KINEMATIC padding, material (n_total,)
-        with 0 padding. The parked row lies outside the box: fine for the all-pairs
-        neighbour list (up to 1,024 nodes, every model here); a cell list sized from the
-        box would need the box widened.
+        positions (L, n_total, d) with the padding nodes at ``(xmin + 1.5 R k, ymin - 2 R)``
+        (3D: ``(xmin + 1.5 R k, ymin - 2 R, zmin)``) in every frame, particle_type
+        (n_total,) with KINEMATIC padding, material (n_total,) with 0 padding. The parked row
+        lies outside the box: fine for the all-pairs neighbour list (up to 1,024 nodes,
+        every model here); a cell list sized from the box would need the box widened.
     """
     n = positions.shape[1]
     p = n_total - n
     if p < 0:
         raise ValueError(f"pad_nodes: n_total = {n_total} is below the window's {n} nodes")
-    (x0, _), (y0, _) = bounds
-    park = np.stack([x0 + 1.5 * radius * np.arange(p), np.full(p, y0 - 2.0 * radius)], -1)
-    park = np.broadcast_to(park.astype(positions.dtype), (positions.shape[0], p, 2))
+    lower = [float(lo) for lo, _ in bounds]
+    if len(lower) != positions.shape[-1]:
+        raise ValueError(f"pad_nodes: bounds {bounds!r} do not match {positions.shape[-1]}D "
+                         "positions")
+    park = np.stack([lower[0] + 1.5 * radius * np.arange(p),
+                     np.full(p, lower[1] - 2.0 * radius),
+                     *(np.full(p, lo) for lo in lower[2:])], -1)
+    park = np.broadcast_to(park.astype(positions.dtype), (positions.shape[0], p, len(lower)))
     return (np.concatenate([positions, park], 1),
             np.concatenate([particle_type, np.full(p, KINEMATIC, particle_type.dtype)]),
             np.concatenate([material, np.zeros(p, material.dtype)]))
@@ -127,7 +133,7 @@ class FamilyWindowSampler(WindowSampler):
 
     def sample(self, rng: np.random.Generator, batch: int,
                group_rng: np.random.Generator | None = None) -> dict:
-        """A batch of one family and one node count: positions (B, L, N, 2), particle_type
+        """A batch of one family and one node count: positions (B, L, N, d), particle_type
         (B, N), material (B, N), walls, obstacles (see :meth:`WindowSampler.sample`; the
         family and node count come from ``group_rng`` when given)."""
         g = group_rng or rng

@@ -9,6 +9,8 @@ Nothing here knows a scene family: :func:`check_scene` compares any :class:`Scen
 that record and refuses, naming the mismatch, a scene the network has never seen an input
 for:
 
+* a scene of another dimension than the model's (2D or 3D: ``len(gns.bounds)``);
+
 * a box other than the training box, for a model whose folder does not list its training
   boxes (``source.boxes``: written since the walls became a per-trajectory input of the
   network, :mod:`diffgns.graph.geometry`). A model that lists them runs in any box (the
@@ -36,7 +38,7 @@ from diffgns.scene.core import Scene
 from diffgns.scene.materials import Sand
 
 __all__ = ["ModelSource", "SceneSupport", "UnsupportedSceneError", "check_scene",
-           "node_factor"]
+           "node_factor", "particle_spacing"]
 
 #: particles per cell of the training data when the model folder does not record it
 #: (every dataset builder of :mod:`diffgns.io.datagen` uses 4)
@@ -53,7 +55,7 @@ class ModelSource:
     """What a particle GNS model was trained on (lengths m, times s).
 
     Attributes:
-        bounds: ``((xmin, xmax), (ymin, ymax))`` of the training box.
+        bounds: ``((xmin, xmax), (ymin, ymax)(, (zmin, zmax)))`` of the training box.
         dx: MPM cell size of the training data (None if the folder does not record it).
         particles_per_cell: MPM particles per cell of the training data.
         frame_dt: MPM frame of the training data (the GNS step is ``frame_dt * frame_stride``).
@@ -92,9 +94,15 @@ class ModelSource:
                    kind=str(src.get("kind", "?")))
 
     @property
+    def dim(self) -> int:
+        """Spatial dimension of the model, 2 or 3 (the axes of its box)."""
+        return len(self.bounds)
+
+    @property
     def particle_spacing(self) -> float | None:
-        """Spacing of the training MPM particles, m (``dx / sqrt(particles per cell)``)."""
-        return None if self.dx is None else self.dx / math.sqrt(self.particles_per_cell)
+        """Spacing of the training MPM particles, m (``dx / (particles per cell)^(1/d)``)."""
+        return None if self.dx is None else particle_spacing(self.dx, self.particles_per_cell,
+                                                             self.dim)
 
 
 @dataclass(frozen=True)
@@ -112,11 +120,17 @@ class SceneSupport:
     warnings: tuple[str, ...] = ()
 
 
-def node_factor(factor: int, trained_spacing: float, spacing: float) -> int:
+def particle_spacing(dx: float, particles_per_cell: int, dim: int = 2) -> float:
+    """Spacing of MPM particles seeded ``particles_per_cell`` to a cell of side ``dx`` (m) in
+    ``dim`` dimensions: ``dx / ppc^(1/d)``."""
+    return dx / (math.sqrt(particles_per_cell) if dim == 2 else float(np.cbrt(particles_per_cell)))
+
+
+def node_factor(factor: int, trained_spacing: float, spacing: float, dim: int = 2) -> int:
     """MPM particles per node that keep the trained node spacing when the MPM particles are
-    ``spacing`` apart instead of ``trained_spacing`` (m): ``factor * (trained / spacing)^2``;
+    ``spacing`` apart instead of ``trained_spacing`` (m): ``factor * (trained / spacing)^d``;
     refuses when that is not a whole number of particles."""
-    f = factor * (trained_spacing / spacing) ** 2
+    f = factor * (trained_spacing / spacing) ** dim
     if abs(f - round(f)) > 1e-6 or round(f) < 1:
         raise UnsupportedSceneError(
             f"the model groups {factor} particles per node at particle spacing "
@@ -148,6 +162,11 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
     if resolution not in ("exact", "node-spacing"):
         raise ValueError(f"resolution must be 'exact' or 'node-spacing', got {resolution!r}")
     src = ModelSource.from_info(info)
+    if scene.dim != src.dim:
+        raise UnsupportedSceneError(
+            f"{model} cannot simulate this scene: it is {scene.dim}D but the model is "
+            f"{src.dim}D (a GNS runs only in the dimension it was trained in); use a model "
+            f"trained on {scene.dim}D data")
     why = []
     box = tuple(tuple(ax) for ax in scene.domain)
     boxes = (info.get("source") or {}).get("boxes")
@@ -188,7 +207,7 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
         try:
             if src.particle_spacing is not None:
                 factor = node_factor(src.factor, src.particle_spacing,
-                                     scene.dx / math.sqrt(ppcs[0]))
+                                     particle_spacing(scene.dx, ppcs[0], src.dim), src.dim)
         except UnsupportedSceneError as e:
             why.append(str(e))
     if why:
@@ -212,8 +231,10 @@ def _warnings(scene: Scene, info: dict) -> list[str]:
                    "obstacle input (trained without obstacles)")
     if any(any(v != 0 for v in (b.velocity or ())) for b in scene.bodies):
         out.append("bodies start moving; the training scenes started at rest")
-    if tuple(scene.gravity or ()) != (0.0, -9.81):
-        out.append(f"gravity {scene.gravity} m/s^2 differs from the training (0, -9.81)")
+    trained_g = (0.0, -9.81) + (0.0,) * (scene.dim - 2)
+    if tuple(scene.gravity or ()) != trained_g:
+        out.append(f"gravity {scene.gravity} m/s^2 differs from the training ("
+                   + ", ".join(f"{g:g}" for g in trained_g) + ")")
     return out
 
 

@@ -23,10 +23,16 @@ from flax import serialization
 
 from diffgns.distributed import barrier, is_main, to_host
 from diffgns.errors import InputError
-from diffgns.graph.data import WindowSampler, frame_statistics, load_trajectories
+from diffgns.graph.data import (
+    WindowSampler,
+    check_one_dimension,
+    frame_statistics,
+    load_trajectories,
+)
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
 from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
+from diffgns.graph.geometry import obstacle_array
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.sampling import FamilyWindowSampler
 from diffgns.graph.training import (
@@ -70,8 +76,9 @@ def load_model(path: str | Path) -> tuple[GNS, dict, dict]:
     src = info.get("source") or {}
     gns = GNS(cfg, norm, frame_dt=float(src.get("dt", 2.5e-3)) * int(info.get("frame_stride", 1)))
     C = cfg.history
-    template = gns.init_network(jax.random.PRNGKey(0), (jnp.zeros((2, C + 1, 2)) + 0.5,
-                                                         jnp.zeros(2, jnp.int32), jnp.zeros(2)))
+    template = gns.init_network(jax.random.PRNGKey(0),
+                                (jnp.zeros((2, C + 1, cfg.dim)) + 0.5,
+                                 jnp.zeros(2, jnp.int32), jnp.zeros(2)))
     params = serialization.from_bytes(template, (path / "params.msgpack").read_bytes())
     return gns, params, info
 
@@ -100,12 +107,27 @@ def average_models(paths, out: str | Path) -> Path:
 
 
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
-    """Load training data and build the GNS whose normaliser matches it."""
-    trajs, meta = [], {}
+    """Load training data and build the GNS whose normaliser matches it. The data fix the
+    model's dimension (2D or 3D: the axes of the union of the training boxes); datasets of
+    mixed dimension are refused (:class:`~diffgns.errors.InputError`)."""
+    trajs, meta, dims = [], {}, {}
     for p in train_paths:
         t, m = load_trajectories(p, factor, frame_stride)
+        dims[str(p)] = _dimension(t, f"--data {p}")
         trajs += t
         meta = meta or m
+    if len(set(dims.values())) > 1:
+        raise InputError("--data", "the datasets mix dimensions (" + ", ".join(
+            f"{p}: {d}D" for p, d in dims.items()) + ")",
+            "train a GNS on 2D or on 3D data, not both")
+    if gns_kw.get("use_obstacles"):
+        for i, t in enumerate(trajs):
+            try:
+                obstacle_array(t.obstacles, 0, len(t.bounds))
+            except ValueError as e:
+                raise InputError("--obstacle-features", f"training trajectory {i}: {e}",
+                                 "store each obstacle as [lo..., hi...] with one pair per axis "
+                                 "of the data") from None
     stats = frame_statistics(trajs)
     # What the data came from (e.g. the MPM resolution a hybrid must pair this model with).
     stats["source"] = {k: meta[k] for k in ("kind", "width", "cells_across", "dt", "bounds")
@@ -115,6 +137,10 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     stats["source"]["boxes"] = sorted({tuple(map(tuple, np.asarray(t.bounds, float).tolist()))
                                        for t in trajs})
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
+    if trajs and len(bounds) != len(trajs[0].bounds):
+        raise InputError("bounds", f"{len(bounds)}D bounds for {len(trajs[0].bounds)}D data",
+                         "give bounds of the data's dimension, or none (the union of the "
+                         "training boxes)")
     cfg = GNSConfig(bounds=bounds, **gns_kw)
     frame_dt = float(trajs[0].frame_dt) if trajs else 2.5e-3
     return GNS(cfg, ParticleStats.from_metadata(stats, cfg.noise_std), frame_dt), trajs, stats
@@ -125,6 +151,11 @@ def _initial_model(path, gns: GNS):
     except for the training noise ``noise_std`` and the neighbour-list head-room
     ``capacity_multiplier`` (see :func:`_network_difference`; the model's normaliser, which
     folded in its own noise, is kept; the requested config is used)."""
+    dim = len(json.loads((_gns_folder(path) / "config.json").read_text())["gns"]["bounds"])
+    if dim != gns.config.dim:  # before loading: refused at once
+        raise InputError("--init-from", f"model {path} is {dim}D but the training data are "
+                         f"{gns.config.dim}D", "fine-tune a model of the data's dimension, "
+                         "or train from scratch")
     base, params, _ = load_model(path)
     if diff := _network_difference(base.config, gns.config):
         raise ValueError(f"--init-from model {path} has a different configuration: "
@@ -153,9 +184,24 @@ def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:
 
 
 def _union_bounds(trajs):
-    b = np.array([t.bounds for t in trajs])
-    return ((float(b[:, 0, 0].min()), float(b[:, 0, 1].max())),
-            (float(b[:, 1, 0].min()), float(b[:, 1, 1].max())))
+    """The union of the trajectories' boxes, ((lo, hi), ...) m, one pair per axis."""
+    b = np.array([t.bounds for t in trajs])  # (n, d, 2)
+    return tuple((float(b[:, k, 0].min()), float(b[:, k, 1].max()))
+                 for k in range(b.shape[1]))
+
+
+def _dimension(trajs, what: str) -> int:
+    """The one dimension (2 or 3) of ``trajs`` (positions and boxes); InputError naming
+    ``what`` when they mix dimensions or a box does not match its positions."""
+    try:
+        dim = check_one_dimension(trajs, "its trajectories")
+    except ValueError as e:
+        raise InputError(what, str(e)) from None
+    bad = [i for i, t in enumerate(trajs) if len(t.bounds) != dim]
+    if bad:
+        raise InputError(what, f"trajectories {bad} have {dim}D positions but boxes of another "
+                         "dimension", "rewrite the dataset (bounds: one [lo, hi] per axis)")
+    return dim
 
 
 def _families(train_paths) -> list[str] | None:
@@ -206,18 +252,22 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     gns, trajs, stats = build(train_paths, dict(gns_kw), factor, frame_stride)
     valid = load_trajectories(valid_path, factor, frame_stride)[0][:n_valid] if valid_path \
         else []
+    if valid and (d := _dimension(valid, f"--valid {valid_path}")) != gns.config.dim:
+        raise InputError("--valid", f"{valid_path} is {d}D but the training data are "
+                         f"{gns.config.dim}D", f"validate on {gns.config.dim}D data")
     families = _families(train_paths)
     sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights)
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
-    params = gns.init_network(jax.random.PRNGKey(tcfg.seed),
-                              (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
-                               jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
     if init_from is not None and not has_checkpoint(out):
         gns, params = _initial_model(init_from, gns)
         trainer = Trainer(gns, tcfg)
         print(f"fine-tuning from {init_from}")
+    else:  # a new network (or a resumed one, whose params the checkpoint replaces)
+        params = gns.init_network(jax.random.PRNGKey(tcfg.seed),
+                                  (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
+                                   jnp.asarray(t0.particle_type), jnp.asarray(t0.material)))
     source = stats.pop("source")
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,

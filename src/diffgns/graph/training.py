@@ -40,9 +40,9 @@ __all__ = ["NeighborLists", "TrainConfig", "Trainer", "load_checkpoint", "make_o
 
 
 def pushed_target(window, hist, unroll: int):
-    """Target acceleration (N, 2) for the input history ``hist``, in m/frame^2.
+    """Target acceleration (N, d) for the input history ``hist``, in m/frame^2.
 
-    ``window`` (L, N, 2) is the data, ``hist`` (N, C+1, 2) the input history: the noisy data
+    ``window`` (L, N, d) is the data, ``hist`` (N, C+1, d) the input history: the noisy data
     (``unroll = 0``) or the model's own rollout from it after ``unroll`` push-forward steps,
     ending at data frame ``C + unroll``. Either way its offset from the data is treated as
     input noise (:func:`~diffgns.graph.features.target_acceleration`): the target corrects
@@ -58,10 +58,10 @@ def pushed_target(window, hist, unroll: int):
 
 def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, unroll: int,
                 momentum_weight: float, geometry: Geometry | None = None):
-    """Loss of one window (L, N, 2) of positions, L = history + 2 + unroll, in the walls and
+    """Loss of one window (L, N, d) of positions, L = history + 2 + unroll, in the walls and
     obstacles ``geometry`` (default: the GNS's box, no obstacle)."""
     C = gns.config.history
-    clean = jnp.swapaxes(window[: C + 1], 0, 1)  # (N, C+1, 2)
+    clean = jnp.swapaxes(window[: C + 1], 0, 1)  # (N, C+1, d)
     noise = random_walk_noise(key, clean, gns.config.noise_std, particle_type)
     hist = clean + noise
     n = hist.shape[0]
@@ -200,7 +200,7 @@ class NeighborLists(dict):
 
     def get_or_allocate(self, gns: GNS, x: jax.Array) -> partition.NeighborList:
         """The list for the ``len(x)`` nodes: the existing one, one with the saved capacity
-        (after a resume), or a new one sized for positions ``x`` (N, 2)."""
+        (after a resume), or a new one sized for positions ``x`` (N, d)."""
         n = int(x.shape[0])
         if n not in self:
             nb = gns.allocate(x)

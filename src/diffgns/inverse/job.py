@@ -33,8 +33,10 @@ from diffgns.inverse.simulators import (
     mpm_simulator,
 )
 from diffgns.metrics import runout
+from diffgns.scene.builders3d import cylinder_axis
 
-__all__ = ["OBJECTIVES", "SIMULATORS", "make_objective", "make_simulator", "solve"]
+__all__ = ["OBJECTIVES", "SIMULATORS", "default_center", "make_objective", "make_simulator",
+           "solve"]
 
 SIMULATORS = ("mpm", "gns", "hybrid")
 OBJECTIVES = ("runout", "runout-max", "runout-frame", "deposit")
@@ -66,9 +68,10 @@ def make_simulator(kind: str, obs: SceneObservation, model=DEFAULT_MODEL, loaded
 
 
 def runout_value_loss(value: float, n_obs: int, frame: int = -1, method: str = "max",
-                      origin: float = 0.0) -> Callable:
+                      origin: float = 0.0, center=None) -> Callable:
     """``positions -> (runout(positions[frame]) - value)^2`` (m^2) for a measured runout
-    ``value`` (m from ``origin``) at observed frame ``frame`` of ``n_obs``."""
+    ``value`` (m from ``origin``, or the radius about the vertical axis ``center`` (cx, cz)
+    in 3D) at observed frame ``frame`` of ``n_obs``."""
     if not -n_obs <= frame < n_obs:
         raise ValueError(f"frame {frame} is outside the {n_obs} observed frames")
     if not np.isfinite(value):
@@ -76,38 +79,59 @@ def runout_value_loss(value: float, n_obs: int, frame: int = -1, method: str = "
     t = frame % n_obs
 
     def loss(positions):
-        return (runout(positions[t], origin=origin, method=method) - value) ** 2
+        return (runout(positions[t], origin=origin, method=method, center=center) - value) ** 2
 
     return loss
 
 
+def default_center(scene) -> tuple[float, float] | None:
+    """The vertical axis (cx, cz), m, about which a 3D scene's runout is a radius: the common
+    axis of its bodies when they are all upright cylinders on one axis, else None (the
+    runout is then measured along x, as in 2D)."""
+    axis = cylinder_axis(scene)
+    return None if axis is None else axis[0]
+
+
 def make_objective(name: str, obs: SceneObservation, observed=None, frame: int = -1,
-                   observed_runout: float | None = None, origin: float | None = None
-                   ) -> Callable:
-    """``positions (n_obs, n, 2) -> loss``: ``name`` in :data:`OBJECTIVES`.
+                   observed_runout: float | None = None, origin: float | None = None,
+                   center=None) -> Callable:
+    """``positions (n_obs, n, d) -> loss``: ``name`` in :data:`OBJECTIVES`.
 
     runout: soft maximum (temperature 2 mm) of x at the last observed frame, squared misfit
     (m^2); runout-max: the farthest node; runout-frame: the soft runout at ``frame``;
-    deposit: deposit height profile at ``frame`` in 40 bins across the box (dimensionless).
-    The target is the observed nodes ``observed`` (n_obs, n', 2), or a measured runout
-    ``observed_runout`` (m from ``origin``, default the box's left wall; compared with the
-    farthest node unless ``name`` is "runout" or "runout-frame").
+    deposit: deposit height profile at ``frame`` in 40 bins across the box (dimensionless,
+    2D only). The target is the observed nodes ``observed`` (n_obs, n', d), or a measured
+    runout ``observed_runout`` (m from ``origin``, default the box's left wall; compared
+    with the farthest node unless ``name`` is "runout" or "runout-frame"). In 3D the runout
+    is the radius about the vertical axis ``center`` (cx, cz), m, by default
+    :func:`default_center` (a cylinder's axis); x from ``origin`` when there is none.
     """
     if name not in OBJECTIVES:
         raise ValueError(f"objective {name!r} is unknown; use one of {OBJECTIVES}")
     if (observed is None) == (observed_runout is None):
         raise ValueError("give exactly one observation: an observed trajectory or a runout")
+    if center is not None and obs.scene.dim != 3:
+        raise ValueError("a runout centre (radial runout) is for 3D scenes; this scene is 2D: "
+                         "use the origin")
+    if center is not None and origin is not None:
+        raise ValueError("give a runout origin (x) or a centre (radius), not both")
+    if center is None and origin is None:
+        center = default_center(obs.scene)
     origin = float(obs.bounds[0][0]) if origin is None else float(origin)
     method = "max" if name == "runout-max" else "softmax"
     fr = frame if name in ("runout-frame", "deposit") else -1
+    if name == "deposit" and obs.scene.dim != 2:
+        raise ValueError("the deposit objective is a 2D height profile along x; for a 3D scene "
+                         "use runout, runout-max or runout-frame")
     if observed_runout is not None:
         if name == "deposit":
             raise ValueError("the deposit objective needs an observed trajectory, not a runout")
-        return runout_value_loss(observed_runout, obs.n_obs, fr, method, origin)
+        return runout_value_loss(observed_runout, obs.n_obs, fr, method, origin, center)
     if name == "deposit":
         edges = np.linspace(obs.bounds[0][0], obs.bounds[0][1], 41)
         return objectives.deposit_loss(observed, edges, 4 / obs.scene.dx, frame=fr)
-    return objectives.runout_loss(observed, frame=fr, method=method, origin=origin)
+    return objectives.runout_loss(observed, frame=fr, method=method, origin=origin,
+                                  center=center)
 
 
 def format_record(rec: dict) -> str:

@@ -1,4 +1,4 @@
-"""Objectives for inverse problems over any rollout ``positions (T, N, 2)`` in m.
+"""Objectives for inverse problems over any rollout ``positions (T, N, d)`` in m (d = 2, 3).
 
 Each constructor takes the observed (target) trajectory and returns a pure, differentiable
 ``loss(positions) -> scalar``; the simulator output and the target must have the same
@@ -36,26 +36,28 @@ def _frame(target, frame: int) -> int:
 
 def _check_target(target) -> np.ndarray:
     target = np.asarray(target)
-    if target.ndim != 3 or target.shape[-1] != 2:
-        raise ValueError(f"target positions must be (T, N, 2), got {target.shape}")
+    if target.ndim != 3 or target.shape[-1] not in (2, 3):
+        raise ValueError(f"target positions must be (T, N, 2) or (T, N, 3), got {target.shape}")
     if not np.isfinite(target).all():
         raise ValueError("target positions contain NaN or inf")
     return target
 
 
 def runout_residual(target, frame: int = -1, method: str = "softmax", origin: float = 0.0,
-                    temperature: float = 2e-3) -> Callable:
+                    temperature: float = 2e-3, center=None) -> Callable:
     """``positions (T, N, 2) -> runout - observed runout`` (m) at ``frame``.
 
     ``method="max"`` is the farthest particle (gradient through one particle); "softmax"
     a soft maximum of length scale ``temperature`` (m) that spreads the gradient over the
-    front; "percentile" the 99th percentile. The observed value is ``runout_value``.
+    front; "percentile" the 99th percentile. ``center`` (cx, cz), m: the runout radius about
+    that vertical axis (3D) instead of x from ``origin``. The observed value is
+    ``runout_value``.
     """
     target = _check_target(target)
     if method not in RUNOUT_METHODS:
         raise ValueError(f"runout method {method!r} is unknown; use one of {RUNOUT_METHODS}")
     t = _frame(target, frame)
-    kw = dict(origin=origin, method=method, temperature=temperature)
+    kw = dict(origin=origin, method=method, temperature=temperature, center=center)
     value = float(runout(jnp.asarray(target[t]), **kw))
 
     def residual(positions):
@@ -66,9 +68,9 @@ def runout_residual(target, frame: int = -1, method: str = "softmax", origin: fl
 
 
 def runout_loss(target, frame: int = -1, method: str = "softmax", origin: float = 0.0,
-                temperature: float = 2e-3) -> Callable:
+                temperature: float = 2e-3, center=None) -> Callable:
     """``positions -> (runout - observed runout)^2`` in m^2 (see :func:`runout_residual`)."""
-    res = runout_residual(target, frame, method, origin, temperature)
+    res = runout_residual(target, frame, method, origin, temperature, center)
 
     def loss(positions):
         return res(positions) ** 2

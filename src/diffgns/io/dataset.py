@@ -2,9 +2,10 @@
 
 * **HDF5**, LagrangeBench-like (:class:`DatasetWriter`, :func:`load_dataset`,
   :func:`iter_dataset`): one group per trajectory named ``"00000"``, ``"00001"``, ... with
-  datasets ``position`` (T, N, 2) float32 m, ``velocity`` (T, N, 2) float32 m/s,
+  datasets ``position`` (T, N, d) float32 m, ``velocity`` (T, N, d) float32 m/s,
   ``particle_type`` (N,) int32, ``material_property`` (N,) float32 (tan friction angle) and
-  attributes ``frame_dt`` (s) and ``bounds`` ((2, 2), m). :meth:`DatasetWriter.finalize` writes
+  attributes ``frame_dt`` (s) and ``bounds`` ((d, 2), m); d = 2, or 3 for the 3D MPM
+  (``diffgns simulate`` of a 3D scene; the GNS takes either). :meth:`DatasetWriter.finalize` writes
   the statistics to ``<stem>.metadata.json`` next to the file (``data/train.h5`` ->
   ``data/train.metadata.json``), so several splits can share a folder.
 * **PyTorch GNS** ``.npz`` import and export: :mod:`diffgns.io.npz`.
@@ -92,9 +93,10 @@ def _require(ok: bool, message: str) -> None:
         raise ValueError(message)
 
 
-def _as_bounds(value, where: str) -> tuple:
+def _as_bounds(value, where: str, dim: int = 2) -> tuple:
     arr = np.asarray(value, dtype=float)
-    _require(arr.shape == (2, 2), f"{where}: 'bounds' must be [[xmin, xmax], [ymin, ymax]]")
+    _require(arr.shape == (dim, 2), f"{where}: 'bounds' must be [[xmin, xmax], [ymin, ymax]"
+             + ("]" if dim == 2 else ", [zmin, zmax]]"))
     return tuple(tuple(float(b) for b in row) for row in arr)
 
 
@@ -105,10 +107,11 @@ def _as_material(mat, n: int, where: str, name: str = "material_property") -> np
     return mat
 
 
-def _check_trajectory(traj: Trajectory) -> None:
+def _check_trajectory(traj: Trajectory, dims: tuple[int, ...] = (2,)) -> None:
     shape = tuple(traj.positions.shape)
-    _require(len(shape) == 3 and shape[-1] == 2,
-             f"trajectory field 'positions' must be (T, N, 2), got {shape}")
+    want = " or ".join(f"(T, N, {d})" for d in dims)
+    _require(len(shape) == 3 and shape[-1] in dims,
+             f"trajectory field 'positions' must be {want}, got {shape}")
     for name, want in [("velocities", shape), ("particle_type", shape[1:2]),
                        ("material", shape[1:2])]:
         got = tuple(getattr(traj, name).shape)
@@ -303,23 +306,25 @@ class DatasetWriter(H5TrajectoryFile):
         ``attrs`` are stored as group attributes (numbers, strings and numeric arrays as is,
         anything else as JSON text). The file is flushed before returning.
         """
-        _check_trajectory(traj)
+        _check_trajectory(traj, dims=(2, 3))
         datasets = dict(position=np.asarray(traj.positions, dtype=np.float32),
                         velocity=np.asarray(traj.velocities, dtype=np.float32),
                         particle_type=np.asarray(traj.particle_type, dtype=np.int32),
                         material_property=np.asarray(traj.material, dtype=np.float32))
         extra = dict(attrs or {})
         if traj.obstacles and "obstacles" not in extra:  # the scene's box obstacles, m
-            extra["obstacles"] = np.asarray(traj.obstacles, float).reshape(-1, 4)
+            d2 = 2 * np.shape(traj.positions)[-1]  # [lo..., hi...] per box: 2 numbers per axis
+            extra["obstacles"] = np.asarray(traj.obstacles, float).reshape(-1, d2)
         self._store(key, datasets, dict(
             frame_dt=float(traj.frame_dt),
-            bounds=np.asarray(traj.bounds, dtype=float).reshape(2, 2), **extra))
+            bounds=np.asarray(traj.bounds, dtype=float).reshape(-1, 2), **extra))
 
     def finalize(self, connectivity_radius: float) -> dict:
         """Compute the statistics and write ``<stem>.metadata.json`` (:func:`metadata_path`).
 
-        Returns the metadata dict: ``bounds`` [[xmin, xmax], [ymin, ymax]] (union over the
-        trajectories), ``dim``, ``dt`` (frame dt, s), ``default_connectivity_radius`` (m),
+        Returns the metadata dict: ``bounds`` [[xmin, xmax], [ymin, ymax](, [zmin, zmax])]
+        (union over the trajectories), ``dim`` (2 or 3), ``dt`` (frame dt, s),
+        ``default_connectivity_radius`` (m),
         ``vel_mean``/``vel_std`` (m/frame), ``acc_mean``/``acc_std`` (m/frame^2),
         ``sequence_length`` and ``n_particles`` (lists, one per trajectory), ``n_trajectories``,
         plus ``metadata_extra``.
@@ -329,11 +334,13 @@ class DatasetWriter(H5TrajectoryFile):
         dts = [float(self._file[k].attrs["frame_dt"]) for k in keys]
         _require(np.allclose(dts, dts[0], rtol=1e-6, atol=0),
                  f"{self.path}: trajectories differ in frame_dt {sorted(set(dts))}")
+        shapes = [self._file[k]["position"].shape for k in keys]
+        dims = sorted({int(sh[-1]) for sh in shapes})
+        _require(len(dims) == 1, f"{self.path}: trajectories mix dimensions {dims}")
         all_bounds = np.stack([np.asarray(self._file[k].attrs["bounds"]) for k in keys])
         bounds = np.stack([all_bounds[:, :, 0].min(axis=0), all_bounds[:, :, 1].max(axis=0)], 1)
-        shapes = [self._file[k]["position"].shape for k in keys]
         meta = {
-            "bounds": bounds.tolist(), "dim": 2, "dt": dts[0],
+            "bounds": bounds.tolist(), "dim": dims[0], "dt": dts[0],
             "default_connectivity_radius": float(connectivity_radius),
             **compute_statistics(self._file[k]["position"][()] for k in keys),
             "sequence_length": [int(sh[0]) for sh in shapes], "n_trajectories": len(keys),
@@ -372,8 +379,8 @@ def _read_group(path: Path, key: str, grp: h5py.Group, meta: dict | None) -> Tra
     for name in ("position", "particle_type"):
         _require(name in grp, f"{where}: missing dataset '{name}'")
     pos, ptype = grp["position"][()], grp["particle_type"][()]
-    _require(pos.ndim == 3 and pos.shape[-1] == 2,
-             f"{where}: 'position' must have shape (T, N, 2), got {pos.shape}")
+    _require(pos.ndim == 3 and pos.shape[-1] in (2, 3),
+             f"{where}: 'position' must have shape (T, N, 2) or (T, N, 3), got {pos.shape}")
     n = pos.shape[1]
     _require(ptype.shape == (n,), f"{where}: 'particle_type' must be ({n},), got {ptype.shape}")
 
@@ -385,12 +392,16 @@ def _read_group(path: Path, key: str, grp: h5py.Group, meta: dict | None) -> Tra
         return meta[meta_name]
 
     frame_dt = float(attr("frame_dt", "dt"))
-    bounds = _as_bounds(attr("bounds", "bounds"), where)
+    bounds = _as_bounds(attr("bounds", "bounds"), where, dim=pos.shape[-1])
     vel = grp["velocity"][()] if "velocity" in grp else finite_difference_velocity(pos, frame_dt)
     _require(vel.shape == pos.shape, f"{where}: 'velocity' must be {pos.shape}, got {vel.shape}")
     mat = (_as_material(grp["material_property"][()], n, where) if "material_property" in grp
            else np.zeros((n,), dtype=pos.dtype))
-    obs = np.asarray(grp.attrs.get("obstacles", np.zeros((0, 4))), float).reshape(-1, 4)
+    d2 = 2 * pos.shape[-1]  # an obstacle box is 2 numbers per axis
+    obs = np.asarray(grp.attrs.get("obstacles", np.zeros((0, d2))), float)
+    _require(obs.size % d2 == 0, f"{where}: 'obstacles' must be rows of {d2} numbers (a box "
+             f"per row in {d2 // 2}D), got shape {obs.shape}")
+    obs = obs.reshape(-1, d2)
     return _make_trajectory(pos, vel, ptype, mat, frame_dt, bounds,
                             tuple(tuple(float(c) for c in o) for o in obs))
 

@@ -33,9 +33,10 @@ def _new_figure(figsize: tuple[float, float]) -> Figure:
     return fig
 
 
-def _union_bounds(bounds_list: Sequence) -> tuple[tuple[float, float], tuple[float, float]]:
-    b = np.asarray([np.asarray(bd, dtype=float).reshape(2, 2) for bd in bounds_list])
-    return tuple((float(b[:, d, 0].min()), float(b[:, d, 1].max())) for d in range(2))
+def _union_bounds(bounds_list: Sequence) -> tuple[tuple[float, float], ...]:
+    """((min, max), ...) per axis over bounds of one dimension (2 or 3 axes)."""
+    b = np.asarray([np.asarray(bd, dtype=float).reshape(-1, 2) for bd in bounds_list])
+    return tuple((float(b[:, d, 0].min()), float(b[:, d, 1].max())) for d in range(b.shape[1]))
 
 
 def _default_marker_size(n_particles: int) -> float:
@@ -58,6 +59,53 @@ class _PalettePillowWriter(PillowWriter):
         super().grab_frame(**savefig_kwargs)
         frame = self._frames[-1]
         self._frames[-1] = frame.convert("RGB").quantize(colors=256)
+
+
+def _animation_frames(trajs: Trajectory | Sequence[Trajectory],
+                      titles: Sequence[str] | None, color: str, every: int
+                      ) -> tuple[list[Trajectory], float, list[np.ndarray],
+                                 list[np.ndarray] | None, Normalize | None]:
+    """The checked inputs of an animation: (trajectories, frame dt, the drawn positions per
+    trajectory, their speeds or None, the shared speed Normalize or None). Only the frames
+    that are drawn (0, every, 2 every, ...) are copied to the host."""
+    runs = [trajs] if isinstance(trajs, Trajectory) else list(trajs)
+    if not runs:
+        raise ValueError("animate needs at least one trajectory")
+    if titles is not None and len(titles) != len(runs):
+        raise ValueError(f"got {len(titles)} titles for {len(runs)} trajectories")
+    if color not in ("type", "speed"):
+        raise ValueError(f"color must be 'type' or 'speed', got {color!r}")
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    dims = {int(t.positions.shape[-1]) for t in runs}
+    if len(dims) > 1:
+        raise ValueError(f"trajectories mix dimensions {sorted(dims)}; animate 2D and 3D "
+                         "trajectories separately")
+    dt = float(runs[0].frame_dt)
+    if any(not np.isclose(float(t.frame_dt), dt, rtol=1e-6, atol=0) for t in runs):
+        raise ValueError(f"trajectories have different frame_dt: {[t.frame_dt for t in runs]}")
+    pos = [np.asarray(t.positions[::every]) for t in runs]
+    speed, norm = None, None
+    if color == "speed":
+        speed = [np.linalg.norm(np.asarray(t.velocities[::every]), axis=-1) for t in runs]
+        norm = Normalize(vmin=0.0, vmax=max(float(sp.max()) for sp in speed) or 1.0)
+    return runs, dt, pos, speed, norm
+
+
+def _record(fig: Figure, path: str | Path, fps: int, n_draw: int, seconds_per_draw: float,
+            draw) -> Path:
+    """Write the GIF ``path``: for k = 0 .. n_draw - 1, ``draw(k)`` updates the artists, the
+    figure title shows ``t = k * seconds_per_draw`` and the frame is grabbed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    label = fig.suptitle("", fontsize=10)
+    writer = _PalettePillowWriter(fps=fps)
+    with writer.saving(fig, str(path), dpi=fig.dpi):
+        for k in range(n_draw):
+            draw(k)
+            label.set_text(f"t = {k * seconds_per_draw:.3f} s")
+            writer.grab_frame()
+    return path
 
 
 def animate(
@@ -83,39 +131,22 @@ def animate(
         s: marker area in points^2; chosen from the particle count if ``None``.
 
     All panels share the axis limits (the union of the trajectories' bounds, m) with equal
-    aspect; the figure title shows the time ``t = 0.125 s``. Returns the path written.
+    aspect; the figure title shows the time ``t = 0.125 s``. Returns the path written. (3D
+    trajectories: :func:`diffgns.io.figures3d.animate3d`, the same machinery in a 3D view.)
     """
-    trajs = [trajs] if isinstance(trajs, Trajectory) else list(trajs)
-    if not trajs:
-        raise ValueError("animate needs at least one trajectory")
-    if titles is not None and len(titles) != len(trajs):
-        raise ValueError(f"got {len(titles)} titles for {len(trajs)} trajectories")
-    if color not in ("type", "speed"):
-        raise ValueError(f"color must be 'type' or 'speed', got {color!r}")
-    if every < 1:
-        raise ValueError(f"every must be >= 1, got {every}")
-    dt = float(trajs[0].frame_dt)
-    if any(not np.isclose(float(t.frame_dt), dt, rtol=1e-6, atol=0) for t in trajs):
-        raise ValueError(f"trajectories have different frame_dt: {[t.frame_dt for t in trajs]}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-
-    # Only the frames that are drawn are copied to the host.
-    pos = [np.asarray(t.positions[::every]) for t in trajs]
-    speed = None
-    if color == "speed":
-        speed = [np.linalg.norm(np.asarray(t.velocities[::every]), axis=-1) for t in trajs]
-        vmax = max(float(sp.max()) for sp in speed) or 1.0
-        norm = Normalize(vmin=0.0, vmax=vmax)
+    runs, dt, pos, speed, norm = _animation_frames(trajs, titles, color, every)
+    if pos[0].shape[-1] != 2:
+        raise ValueError(f"animate draws 2D trajectories, positions (T, N, 2), got "
+                         f"{pos[0].shape}; use diffgns.io.figures3d.animate3d in 3D")
     n_draw = max(p.shape[0] for p in pos)
-    (xmin, xmax), (ymin, ymax) = _union_bounds([t.bounds for t in trajs])
+    (xmin, xmax), (ymin, ymax) = _union_bounds([t.bounds for t in runs])
     aspect = (ymax - ymin) / (xmax - xmin)
     panel_h = float(np.clip(_PANEL_INCHES * aspect, 1.5, 2 * _PANEL_INCHES))
-    fig = _new_figure((_PANEL_INCHES * len(trajs) + (1.0 if speed else 0.0), panel_h + 0.6))
-    axes = fig.subplots(1, len(trajs), squeeze=False)[0]
+    fig = _new_figure((_PANEL_INCHES * len(runs) + (1.0 if speed else 0.0), panel_h + 0.6))
+    axes = fig.subplots(1, len(runs), squeeze=False)[0]
 
     scatters = []
-    for i, (ax, traj) in enumerate(zip(axes, trajs, strict=True)):
+    for i, (ax, traj) in enumerate(zip(axes, runs, strict=True)):
         ax.set_xlim(xmin, xmax)
         ax.set_ylim(ymin, ymax)
         ax.set_aspect("equal")
@@ -132,19 +163,15 @@ def animate(
         scatters.append(sc)
     if speed is not None:
         fig.colorbar(scatters[0], ax=list(axes), label="speed (m/s)", shrink=0.8)
-    label = fig.suptitle("", fontsize=10)
 
-    writer = _PalettePillowWriter(fps=fps)
-    with writer.saving(fig, str(path), dpi=fig.dpi):
-        for k in range(n_draw):
-            for i, sc in enumerate(scatters):
-                j = min(k, pos[i].shape[0] - 1)
-                sc.set_offsets(pos[i][j])
-                if speed is not None:
-                    sc.set_array(speed[i][j])
-            label.set_text(f"t = {k * every * dt:.3f} s")
-            writer.grab_frame()
-    return path
+    def draw(k: int) -> None:
+        for i, sc in enumerate(scatters):
+            j = min(k, pos[i].shape[0] - 1)
+            sc.set_offsets(pos[i][j])
+            if speed is not None:
+                sc.set_array(speed[i][j])
+
+    return _record(fig, path, fps, n_draw, every * dt, draw)
 
 
 def plot_runout(
@@ -216,25 +243,28 @@ def plot_deposits(
     bounds: Sequence[Sequence[float]],
     s: float | None = None,
 ) -> Path:
-    """Overlay final deposits, one colour per run.
+    """Overlay final deposits, one colour per run (3D deposits: their side view, the x–y
+    projection).
 
     Args:
-        deposits: list of (positions (N_i, 2) in m, label).
+        deposits: list of (positions (N_i, d) in m, label), d = 2 or 3 (all alike).
         path: output image.
-        bounds: ((xmin, xmax), (ymin, ymax)) axis limits in m.
+        bounds: ((xmin, xmax), (ymin, ymax)[, (zmin, zmax)]) axis limits in m.
         s: marker area in points^2; chosen from the largest particle count if ``None``.
     """
     if not deposits:
         raise ValueError("plot_deposits needs at least one deposit")
-    (xmin, xmax), (ymin, ymax) = _union_bounds([bounds])
+    dim = len(bounds)
+    (xmin, xmax), (ymin, ymax) = _union_bounds([bounds])[:2]
     aspect = (ymax - ymin) / (xmax - xmin)
     fig = _new_figure((6.0, float(np.clip(6.0 * aspect, 2.0, 8.0)) + 0.6))
     ax = fig.subplots()
     colors = [f"C{i % 10}" for i in range(len(deposits))]
     for (positions, label), col in zip(deposits, colors, strict=True):
         positions = np.asarray(positions)
-        if positions.ndim != 2 or positions.shape[1] != 2:
-            raise ValueError(f"deposit '{label}': positions must be (N, 2), got {positions.shape}")
+        if positions.ndim != 2 or positions.shape[1] != dim:
+            raise ValueError(f"deposit '{label}': positions must be (N, {dim}) for {dim}D "
+                             f"bounds, got {positions.shape}")
         size = _default_marker_size(positions.shape[0]) if s is None else s
         ax.scatter(positions[:, 0], positions[:, 1], s=size, color=col, alpha=0.5,
                    linewidths=0, label=label)

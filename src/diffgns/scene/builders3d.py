@@ -11,7 +11,8 @@ from diffgns.scene.core import Body, Scene, Wall, Walls
 from diffgns.scene.materials import Sand
 from diffgns.scene.shapes import Box, Cylinder, Rectangle
 
-__all__ = ["axisymmetric_column", "axisymmetric_runout_estimate", "slab_column"]
+__all__ = ["axisymmetric_column", "axisymmetric_runout_estimate", "cylinder_axis",
+           "slab_column"]
 
 
 def axisymmetric_runout_estimate(aspect_ratio: float) -> float:
@@ -20,6 +21,18 @@ def axisymmetric_runout_estimate(aspect_ratio: float) -> float:
     1.6 a^(1/2) above (Lajeunesse et al. 2004 report the same two regimes)."""
     a = float(aspect_ratio)
     return 1.24 * a if a <= 1.7 else 1.6 * math.sqrt(a)
+
+
+def cylinder_axis(scene: Scene) -> tuple[tuple[float, float], Cylinder] | None:
+    """The vertical axis (cx, cz), m, of an axisymmetric 3D scene and its column (the widest
+    cylinder): when every body is an upright :class:`Cylinder` on one axis; else None."""
+    shapes = [b.shape for b in scene.bodies]
+    if scene.dim != 3 or not shapes or not all(isinstance(sh, Cylinder) for sh in shapes):
+        return None
+    if len({(round(sh.cx, 12), round(sh.cz, 12)) for sh in shapes}) != 1:
+        return None
+    column = max(shapes, key=lambda sh: sh.radius)
+    return (float(column.cx), float(column.cz)), column
 
 
 def axisymmetric_column(

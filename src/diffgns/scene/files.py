@@ -125,7 +125,8 @@ def scene_from_dict(d: dict) -> Scene:
             raise SceneError(f"[scene].domain = {sc['domain']!r} is malformed; give {hint}")
     if "gravity" in sc:
         sc["gravity"] = _numbers(sc["gravity"], None, dim, "[scene].gravity",
-                                 "[gx, gy] in m/s^2" if dim == 2 else "[gx, gy, gz] in m/s^2")
+                                 f"{'[gx, gy]' if dim == 2 else '[gx, gy, gz]'} in m/s^2, one "
+                                 f"component per axis of the {dim}-axis domain")
     walls = d.get("walls", {})
     _check_keys(walls, set(WALL_NAMES_3D[: 2 * dim]), "[walls]")
     wall_objs = Walls(**{k: _wall(v, f"[walls].{k}") for k, v in walls.items()})
@@ -137,14 +138,16 @@ def scene_from_dict(d: dict) -> Scene:
             raise SceneError(f"{where} needs both 'shape' and 'material'")
         if not isinstance(b["material"], dict):
             raise SceneError(f"{where}.material must be a table like {{type = \"sand\", ...}}")
-        velocity = b.get("velocity", (0.0,) * dim)
-        if not (isinstance(velocity, list | tuple) and len(velocity) == dim):
+        velocity = b.get("velocity")  # default: at rest, filled by Body for its shape
+        if velocity is not None and not (isinstance(velocity, list | tuple)
+                                         and len(velocity) == dim):
             raise SceneError(f"{where}.velocity = {velocity!r} must be "
-                             f"{'[vx, vy]' if dim == 2 else '[vx, vy, vz]'} in m/s")
+                             f"{'[vx, vy]' if dim == 2 else '[vx, vy, vz]'} in m/s "
+                             f"(the domain has {dim} axes)")
         bodies.append(Body(
             shape=_shape(b["shape"], f"{where}.shape"),
             material=material_from_dict(b["material"], where),
-            velocity=tuple(velocity),
+            velocity=None if velocity is None else tuple(velocity),
             particles_per_cell=b.get("particles_per_cell"), name=b.get("name", ""),
         ))
     obstacles = []

@@ -1,0 +1,82 @@
+"""Pure helpers of the protocol-wrapped benchmark scripts (issue 22): schedule names of
+``hybrid_pareto.py``, its per-round aggregation, and the CFD settings
+``meshnet_accuracy_speed.py`` re-times. Nothing here times anything."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import hybrid_pareto as hp  # noqa: E402
+import meshnet_accuracy_speed as mas  # noqa: E402
+
+from diffgns.hybrid.simulator import Schedule  # noqa: E402
+from diffgns.timing import Interleaved, Sample  # noqa: E402
+
+
+def test_schedule_names_give_the_schedules_of_the_published_table():
+    """FULL names exactly the schedules the 2026-12-01 table ran for its first model."""
+    before = [Schedule(gns_frames=1, mpm_frames=0)]
+    before += [Schedule(gns_frames=m, mpm_frames=k) for k, m in
+               ((1, 10), (2, 10), (2, 5), (4, 4), (4, 2), (8, 2))]
+    before += [Schedule(gns_frames=20, mpm_frames=2, adaptive_tol=t) for t in (0.02, 0.005)]
+    before += [Schedule(gns_frames=4, mpm_frames=4, handoff=h) for h in ("reset", "reconstruct")]
+    before += [Schedule(gns_frames=1, mpm_frames=0, particle_map="rigid"),
+               Schedule(gns_frames=4, mpm_frames=4, particle_map="rigid")]
+    assert [hp.parse_schedule(x) for x in hp.FULL] == before
+    assert hp.parse_schedule("K8M2").label == "hybrid K=8 M=2 (carry)"
+    assert hp.parse_schedule("GNS:rigid").label == "GNS rigid"
+
+
+@pytest.mark.parametrize("bad", ["K4", "M4K4", "K4M4:fast", "hybrid"])
+def test_bad_schedule_names_are_refused(bad):
+    with pytest.raises(argparse.ArgumentTypeError):
+        hp.parse_schedule(bad)
+
+
+def test_case_names():
+    assert hp.parse_case("1.75:27.5") == (1.75, 27.5)
+    with pytest.raises(argparse.ArgumentTypeError):
+        hp.parse_case("1.75")
+
+
+def _row(name, label, family, a, err, own_cells=None):
+    r = dict(name=name, label=label, family=family, case=[a, 30.0], compile_s=1.0,
+             runout_error=err, mean_position_error_m=err, final_position_error_m=err,
+             own_mpm_position_error_m=err, own_mpm_runout_error=err, mpm_fraction=1.0)
+    if own_cells:
+        r["own_cells"] = own_cells
+    return r
+
+
+def test_aggregate_sums_cases_per_round_and_takes_median_ratios():
+    """Time = median over rounds of the per-round sums over the cases; the speed-up over
+    the own-resolution MPM is the median of per-round ratios of those sums."""
+    rows = [_row("m1", "MPM 16 cells", "MPM", 1, 0.0), _row("m2", "MPM 16 cells", "MPM", 2, 0.0),
+            _row("g1", "GNS [x]", "GNS", 1, 2e-3, 16), _row("g2", "GNS [x]", "GNS", 2, 2e-3, 16)]
+    walls = [{"m1": 4, "m2": 6, "g1": 1, "g2": 1},   # MPM 10, GNS 2: 5x
+             {"m1": 5, "m2": 7, "g1": 2, "g2": 2},   # MPM 12, GNS 4: 3x
+             {"m1": 4, "m2": 4, "g1": 1, "g2": 1}]   # MPM 8, GNS 2: 4x
+    rounds = Interleaved(names=list(walls[0]),
+                         rounds=[{k: Sample(v, v / 2) for k, v in w.items()} for w in walls])
+    table = {r["label"]: r for r in hp.aggregate(rows, rounds)}
+    assert table["MPM 16 cells"]["seconds"] == 10
+    assert table["GNS [x]"]["seconds"] == 2 and table["GNS [x]"]["cpu_seconds"] == 1
+    assert table["GNS [x]"]["speedup_vs_own_mpm"] == 4.0
+    assert table["GNS [x]"]["seconds_per_round"] == [2, 4, 2]
+    assert "speedup_vs_own_mpm" not in table["MPM 16 cells"]
+
+
+def test_meshnet_cfd_settings_from_either_kind_of_dataset(tmp_path):
+    run = {"n_frames": 201, "frame_dt": 0.02, "spinup": 20.0, "cfl": 0.075}
+    for name, meta in (("sweep", {"sweep": {"run": run}}), ("plain", {"run": run})):
+        (tmp_path / f"{name}.metadata.json").write_text(json.dumps(meta))
+        got = mas.dataset_run(tmp_path / f"{name}.h5")
+        assert (got.frame_dt, got.cfl, got.n_frames) == (0.02, 0.075, 201)
+    (tmp_path / "none.metadata.json").write_text(json.dumps({"kind": "cylinder"}))
+    with pytest.raises(SystemExit, match="no CFD settings"):
+        mas.dataset_run(tmp_path / "none.h5")
