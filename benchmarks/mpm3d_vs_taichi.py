@@ -31,19 +31,15 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import protocol
 from mpm_vs_taichi import (
     SCAN_LEN,
     DiffgnsJFluid,
-    first_calls,
-    physics_check,
-    report,
-    skip,
+    add_options,
+    close,
+    compare,
+    start,
     taichi_config,
-    timing_rounds,
 )
-
-from diffgns.timing import measure
 
 # the rows of the example's own table of 3D settings: n_grid -> dt
 EXAMPLE_ROWS = {32: 4e-4, 64: 2e-4, 128: 8e-5}
@@ -98,53 +94,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n-grid", type=int, default=32, choices=sorted(EXAMPLE_ROWS),
                     help="nodes per axis: a row of the example's table (default 32)")
-    ap.add_argument("--repeats", type=int, default=9, help="timed rounds (>= 5)")
-    ap.add_argument("--substeps-per-repeat", type=int, default=100,
-                    help=f"substeps per timed segment (a multiple of {SCAN_LEN})")
-    ap.add_argument("--tol", type=float, default=0.03,
-                    help="relative tolerance on mean particle x and y")
-    ap.add_argument("--out", default="mpm3d_vs_taichi.json")
-    protocol.add_arguments(ap, threads="both")
-    args = ap.parse_args(argv)
-    run = protocol.start(args, "mpm3d_vs_taichi")
-    seg = args.substeps_per_repeat
-    if seg % SCAN_LEN or seg < SCAN_LEN:
-        ap.error(f"--substeps-per-repeat must be a positive multiple of {SCAN_LEN}")
-    try:
-        import taichi as ti
-    except Exception as e:  # ImportError or a broken install
-        skip(run, f"taichi is not importable ({e!r}); install it with `pip install taichi` "
-             "(the `bench` extra)", args.out)
-        return
+    add_options(ap, "mpm3d_vs_taichi.json")
+    args, run, ti = start(ap, argv, "mpm3d_vs_taichi")
     import jax
 
-    repeats = max(5, args.repeats)
-    ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=run.threads)
     ti_config = taichi_config(ti)
     example = TaichiMPM3DExample(ti, args.n_grid, tempfile.mkdtemp(prefix="mpm3d_"))
     n = example.n_particles
     x0 = initial_positions(n)
     sims = {"taichi": example,
             "diffgns": DiffgnsJFluid(dim=3, n_grid=args.n_grid, dt=EXAMPLE_ROWS[args.n_grid])}
-
-    def body():
-        first = first_calls(sims, x0)
-        run.print(f"first {SCAN_LEN}-substep call (includes compilation): " + ", ".join(
-            f"{k} {v['first_call_s']:.2f} s" for k, v in first.items()))
-        check = physics_check(sims, x0, args.tol)
-        for cp, row in check.items():
-            r = row["rel_diff"]
-            run.print(f"after {cp:>4} substeps: mean y diffgns {row['diffgns']['mean_y']:.5f} "
-                      f"taichi {row['taichi']['mean_y']:.5f} (rel diff {r['mean_y']:.2e}); "
-                      f"mean x rel diff {r['mean_x']:.2e}; std y rel diff {r['std_y']:.2e} -> "
-                      f"{'agree' if row['agree'] else 'DISAGREE'}")
-        return first, check, timing_rounds(sims, x0, seg, repeats, n_particles=n)
-
-    total, (first, check, res) = measure(body, sync=lambda _: None)
-    report(run, res, repeats, seg)
-    agree = all(row["agree"] for row in check.values())
-    run.print(f"physics agree within {args.tol:.0%}: {agree}; total {total.wall_s:.1f} s "
-              f"(CPU {total.cpu_s:.1f} s)")
+    first, check, res, total, agree = compare(run, args, sims, sims, x0, n_particles=n)
     payload = {
         "problem": {"source": "taichi examples/simulation/mpm3d.py", "dim": 3,
                     "n_particles": n, "n_grid": args.n_grid, "dt": EXAMPLE_ROWS[args.n_grid],
@@ -154,18 +114,8 @@ def main(argv=None):
         "taichi_config": ti_config,
         "diffgns_config": {"jit": f"lax.scan of {SCAN_LEN} substeps", "jax": jax.__version__,
                            "kernels": "mpm_vs_taichi.DiffgnsJFluid(dim=3)"},
-        "substeps_per_repeat": seg, "repeats": repeats, "compile": first, **res,
-        "physics_check": {"tolerance_rel": args.tol, "agree": agree, "checkpoints": check},
-        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s,
     }
-    if run.mode == "both":
-        one = payload["one_thread_pinned"] = run.pinned_child()
-        r2, r1 = res["ratio_diffgns_over_taichi"], one.get("ratio_diffgns_over_taichi")
-        payload["ratios"] = {"2_threads": r2, "1_thread_pinned": r1}
-        run.print("diffgns / taichi throughput: " + protocol.both_ratios(r2, r1, one),
-                  tag=False)
-    path = run.finish(args.out, payload)
-    run.print(f"wrote {path}")
+    close(run, args, payload, first, check, res, total, agree)
 
 
 if __name__ == "__main__":

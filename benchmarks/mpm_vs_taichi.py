@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from typing import Any
 
 import numpy as np
 import protocol
@@ -370,39 +371,39 @@ def taichi_config(ti) -> dict:
             "launch": "one @ti.kernel (4 parallel loops) per substep"}
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_options(ap: argparse.ArgumentParser, out: str) -> None:
+    """The options of both Taichi comparisons (this one and ``mpm3d_vs_taichi.py``)."""
     ap.add_argument("--repeats", type=int, default=9, help="timed rounds (>= 5)")
     ap.add_argument("--substeps-per-repeat", type=int, default=100,
                     help=f"substeps per timed segment (a multiple of {SCAN_LEN})")
     ap.add_argument("--tol", type=float, default=0.03,
                     help="relative tolerance on mean particle x and y")
-    ap.add_argument("--out", default="mpm_vs_taichi.json")
+    ap.add_argument("--out", default=out)
     protocol.add_arguments(ap, threads="both")
+
+
+def start(ap: argparse.ArgumentParser, argv, name: str):
+    """Parse, start the protocol run, import Taichi (or write a skipped record and exit);
+    returns ``(args, run, ti)`` with Taichi initialised on the CPU at the run's threads."""
     args = ap.parse_args(argv)
-    run = protocol.start(args, "mpm_vs_taichi")
-    seg = args.substeps_per_repeat
-    if seg % SCAN_LEN or seg < SCAN_LEN:
+    run = protocol.start(args, name)
+    if args.substeps_per_repeat % SCAN_LEN or args.substeps_per_repeat < SCAN_LEN:
         ap.error(f"--substeps-per-repeat must be a positive multiple of {SCAN_LEN}")
     try:
         import taichi as ti
     except Exception as e:  # ImportError or a broken install
         skip(run, f"taichi is not importable ({e!r}); install it with `pip install taichi` "
              "(the `bench` extra)", args.out)
-        return
-    import jax
-
-    repeats = max(5, args.repeats)
     ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=run.threads)
-    ti_config = taichi_config(ti)
-    x0 = initial_positions(0)
-    sims = {"taichi": TaichiMPM88(ti), "diffgns": DiffgnsJFluid()}
-    workdir = tempfile.mkdtemp(prefix="mpm88_")
-    try:
-        timed = {**sims, "taichi_example": TaichiShippedExample(ti, run.threads, workdir)}
-    except (OSError, RuntimeError, AttributeError) as e:
-        run.print(f"Taichi's shipped mpm88 example not driven: {e}")
-        timed = sims
+    return args, run, ti
+
+
+def compare(run: protocol.Run, args, sims: dict, timed: dict, x0: np.ndarray,
+            n_particles: int = N_PARTICLES) -> tuple[dict, dict, dict, Any, bool]:
+    """First calls, the physics check of ``sims`` ("taichi", "diffgns") from ``x0``, then
+    interleaved timing rounds of ``timed``; printed as they come. Returns
+    ``(first, check, res, total, agree)``."""
+    seg, repeats = args.substeps_per_repeat, max(5, args.repeats)
 
     def body():
         first = first_calls(sims, x0)
@@ -415,13 +416,49 @@ def main(argv=None):
                       f"taichi {row['taichi']['mean_y']:.5f} (rel diff {r['mean_y']:.2e}); "
                       f"mean x rel diff {r['mean_x']:.2e}; std y rel diff {r['std_y']:.2e} -> "
                       f"{'agree' if row['agree'] else 'DISAGREE'}")
-        return first, check, timing_rounds(timed, x0, seg, repeats)
+        return first, check, timing_rounds(timed, x0, seg, repeats, n_particles)
 
     total, (first, check, res) = measure(body, sync=lambda _: None)
     report(run, res, repeats, seg)
     agree = all(row["agree"] for row in check.values())
     run.print(f"physics agree within {args.tol:.0%}: {agree}; total {total.wall_s:.1f} s "
               f"(CPU {total.cpu_s:.1f} s)")
+    return first, check, res, total, agree
+
+
+def close(run: protocol.Run, args, payload: dict, first, check, res, total, agree) -> None:
+    """Add the common record, run the pinned 1-thread variant (``--threads both``), write."""
+    payload.update({
+        "substeps_per_repeat": args.substeps_per_repeat, "repeats": max(5, args.repeats),
+        "compile": first, **res,
+        "physics_check": {"tolerance_rel": args.tol, "agree": agree, "checkpoints": check},
+        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s})
+    if run.mode == "both":
+        one = payload["one_thread_pinned"] = run.pinned_child()
+        r2, r1 = res["ratio_diffgns_over_taichi"], one.get("ratio_diffgns_over_taichi")
+        payload["ratios"] = {"2_threads": r2, "1_thread_pinned": r1}
+        run.print("diffgns / taichi throughput: " + protocol.both_ratios(r2, r1, one),
+                  tag=False)
+    path = run.finish(args.out, payload)
+    run.print(f"wrote {path}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_options(ap, "mpm_vs_taichi.json")
+    args, run, ti = start(ap, argv, "mpm_vs_taichi")
+    import jax
+
+    ti_config = taichi_config(ti)
+    x0 = initial_positions(0)
+    sims = {"taichi": TaichiMPM88(ti), "diffgns": DiffgnsJFluid()}
+    workdir = tempfile.mkdtemp(prefix="mpm88_")
+    try:
+        timed = {**sims, "taichi_example": TaichiShippedExample(ti, run.threads, workdir)}
+    except (OSError, RuntimeError, AttributeError) as e:
+        run.print(f"Taichi's shipped mpm88 example not driven: {e}")
+        timed = sims
+    first, check, res, total, agree = compare(run, args, sims, timed, x0)
     payload = {
         "problem": {
             "n_particles": N_PARTICLES, "n_grid": N_GRID, "dx": DX, "dt": DT, "p_rho": P_RHO,
@@ -434,18 +471,8 @@ def main(argv=None):
                            "kernels": ["shape.stencil", "transfer.p2g",
                                        "transfer.grid_velocity", "boundaries.wall_slip",
                                        "transfer.g2p"]},
-        "substeps_per_repeat": seg, "repeats": repeats, "compile": first, **res,
-        "physics_check": {"tolerance_rel": args.tol, "agree": agree, "checkpoints": check},
-        "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s,
     }
-    if run.mode == "both":
-        one = payload["one_thread_pinned"] = run.pinned_child()
-        r2, r1 = res["ratio_diffgns_over_taichi"], one.get("ratio_diffgns_over_taichi")
-        payload["ratios"] = {"2_threads": r2, "1_thread_pinned": r1}
-        run.print("diffgns / taichi throughput: " + protocol.both_ratios(r2, r1, one),
-                  tag=False)
-    path = run.finish(args.out, payload)
-    run.print(f"wrote {path}")
+    close(run, args, payload, first, check, res, total, agree)
 
 
 if __name__ == "__main__":

@@ -44,11 +44,11 @@ def _rollout(args) -> int:
         print(warn)
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        if dim == 3:
-            from diffgns.io.figures3d import animate3d as animate
-        else:
-            from diffgns.io.figures import animate
-        animate([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
+        from diffgns.io.figures import animate
+        from diffgns.io.figures3d import animate3d
+
+        draw = animate3d if dim == 3 else animate
+        draw([ref, pred], Path(args.out) / "rollout.gif", titles=["MPM", "GNS"], every=2)
         (Path(args.out) / "rollout_metrics.json").write_text(json.dumps(s, indent=2))
         print(f"animation written to {args.out}/rollout.gif")
     return 0

@@ -185,7 +185,7 @@ def plot_deposit3d(
     if handles:
         top_ax.legend(handles=handles, fontsize=7, loc="upper right")
 
-    r0, r1 = (np.asarray(metrics.radial_distance(np.asarray(p), centre))
+    r0, r1 = (np.asarray(metrics.radial_distance(jnp.asarray(p), centre))
               for p in (initial, final))
     r_max = float(max(r0.max(), r1.max())) + dx
     edges = dx * np.arange(math.ceil(r_max / dx) + 1)

@@ -26,8 +26,8 @@ def axisymmetric_runout_estimate(aspect_ratio: float) -> float:
 def cylinder_axis(scene: Scene) -> tuple[tuple[float, float], Cylinder] | None:
     """The vertical axis (cx, cz), m, of an axisymmetric 3D scene and its column (the widest
     cylinder): when every body is an upright :class:`Cylinder` on one axis; else None."""
-    shapes = [b.shape for b in scene.bodies]
-    if scene.dim != 3 or not shapes or not all(isinstance(sh, Cylinder) for sh in shapes):
+    shapes = [b.shape for b in scene.bodies if isinstance(b.shape, Cylinder)]
+    if scene.dim != 3 or not shapes or len(shapes) != len(scene.bodies):
         return None
     if len({(round(sh.cx, 12), round(sh.cz, 12)) for sh in shapes}) != 1:
         return None
