@@ -31,13 +31,14 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import protocol
 from mpm_vs_taichi import (
     SCAN_LEN,
     DiffgnsJFluid,
     add_options,
     close,
     compare,
-    start,
+    start_taichi,
     taichi_config,
 )
 
@@ -95,7 +96,10 @@ def main(argv=None):
     ap.add_argument("--n-grid", type=int, default=32, choices=sorted(EXAMPLE_ROWS),
                     help="nodes per axis: a row of the example's table (default 32)")
     add_options(ap, "mpm3d_vs_taichi.json")
-    args, run, ti = start(ap, argv, "mpm3d_vs_taichi")
+    protocol.add_arguments(ap, threads="both")
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "mpm3d_vs_taichi")
+    ti = start_taichi(ap, args, run)
     import jax
 
     ti_config = taichi_config(ti)

@@ -372,21 +372,19 @@ def taichi_config(ti) -> dict:
 
 
 def add_options(ap: argparse.ArgumentParser, out: str) -> None:
-    """The options of both Taichi comparisons (this one and ``mpm3d_vs_taichi.py``)."""
+    """The options of both Taichi comparisons (this one and ``mpm3d_vs_taichi.py``), beside
+    the protocol's (``protocol.add_arguments(ap, threads="both")``)."""
     ap.add_argument("--repeats", type=int, default=9, help="timed rounds (>= 5)")
     ap.add_argument("--substeps-per-repeat", type=int, default=100,
                     help=f"substeps per timed segment (a multiple of {SCAN_LEN})")
     ap.add_argument("--tol", type=float, default=0.03,
                     help="relative tolerance on mean particle x and y")
     ap.add_argument("--out", default=out)
-    protocol.add_arguments(ap, threads="both")
 
 
-def start(ap: argparse.ArgumentParser, argv, name: str):
-    """Parse, start the protocol run, import Taichi (or write a skipped record and exit);
-    returns ``(args, run, ti)`` with Taichi initialised on the CPU at the run's threads."""
-    args = ap.parse_args(argv)
-    run = protocol.start(args, name)
+def start_taichi(ap: argparse.ArgumentParser, args, run: protocol.Run):
+    """Check the options, import Taichi (or write a skipped record and exit); returns
+    ``ti`` initialised on the CPU at the run's threads."""
     if args.substeps_per_repeat % SCAN_LEN or args.substeps_per_repeat < SCAN_LEN:
         ap.error(f"--substeps-per-repeat must be a positive multiple of {SCAN_LEN}")
     try:
@@ -395,7 +393,7 @@ def start(ap: argparse.ArgumentParser, argv, name: str):
         skip(run, f"taichi is not importable ({e!r}); install it with `pip install taichi` "
              "(the `bench` extra)", args.out)
     ti.init(arch=ti.cpu, default_fp=ti.f32, random_seed=0, cpu_max_num_threads=run.threads)
-    return args, run, ti
+    return ti
 
 
 def compare(run: protocol.Run, args, sims: dict, timed: dict, x0: np.ndarray,
@@ -446,7 +444,10 @@ def close(run: protocol.Run, args, payload: dict, first, check, res, total, agre
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_options(ap, "mpm_vs_taichi.json")
-    args, run, ti = start(ap, argv, "mpm_vs_taichi")
+    protocol.add_arguments(ap, threads="both")
+    args = ap.parse_args(argv)
+    run = protocol.start(args, "mpm_vs_taichi")
+    ti = start_taichi(ap, args, run)
     import jax
 
     ti_config = taichi_config(ti)
