@@ -95,7 +95,8 @@ def test_sliding_distance_gradient_wrt_wall_mu(x64):
     assert g < 0 and g == pytest.approx(fd, rel=0.01)
 
 
-@pytest.mark.parametrize("dtype", ["float32", pytest.param("float64", marks=pytest.mark.slow)])
+@pytest.mark.slow  # float32 63 s in the full suite (2026-12-03, loaded machine)
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_gradient_finite_through_1000_substeps_of_sand(dtype, x64):
     """From F = I (repeated singular values), particles at rest, empty nodes, walls."""
     scene = column_collapse(width=0.1, aspect_ratio=1.0, cells_across=4,

@@ -221,6 +221,7 @@ def test_for_scene_gives_the_scene_box_and_obstacles():
     assert isinstance(geo, Geometry)
 
 
+@pytest.mark.slow  # 61 s in the full suite (2026-12-03, loaded machine)
 def test_training_on_two_boxes_with_families_obstacles_and_padding(tmp_path, monkeypatch):
     """One run over trajectories of two box sizes, two families and obstacles: every window
     reaches the loss with its own walls and obstacles, node counts are padded to the

@@ -182,6 +182,7 @@ print(json.dumps(dict(loss1=out[0][0], loss2=out[1][0], max_param_diff=diff)))
 """
 
 
+@pytest.mark.slow  # 48 s in the full suite (2026-12-03, loaded machine)
 def test_two_device_step_equals_one_device_step(tmp_path):
     script = tmp_path / "dp.py"
     script.write_text(SCRIPT)

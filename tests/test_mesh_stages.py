@@ -59,6 +59,7 @@ def test_unrolled_loss_backpropagates_through_the_rollout():
     assert diff > 1e-3
 
 
+@pytest.mark.slow  # 68 s in the full suite (2026-12-03, loaded machine)
 def test_checkpointed_unroll_equals_plain_and_matches_finite_differences():
     with jax.enable_x64(True):
         model, params, g, v, p = _setup(k=3)

@@ -216,6 +216,7 @@ def test_viscosity_is_an_input_and_a_graph_without_it_is_rejected():
                                                                          viscosity=None))
 
 
+@pytest.mark.slow  # 35 s in the full suite (2026-12-03, loaded machine)
 def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_path):
     """A model trained without the viscosity input, grown to read it: the new input's
     weights start at zero, so the grown network predicts exactly what the old one did; a
