@@ -120,6 +120,31 @@ data/granular_%.h5: data/granular_%.shard-0-of-2.h5 data/granular_%.shard-1-of-2
 granular-test-data: $(VENV)/.installed-test
 	nice -n 19 $(GRANULAR) --n $(GRANULAR_VALID_N) --seed 2 --out data/granular_test.h5
 
+# issue 24: small 3D axisymmetric collapses for the 3D GNS (R0 = 5 cm, 4 cells across R0,
+# 8 particles per cell: 200-1,700 particles; 0.6 s of flow). Training set on a grid of
+# aspect ratios x friction angles, validation between them; the held-out test set
+# (`make column3d-test-data`, other angles and aspect ratios) is drawn after the model is
+# frozen. Two shards per file (`make -j2 column3d-data`), each resumable.
+COLUMN3D = $(VENV)/bin/diffgns dataset --kind column --dim 3 --width 0.05 --cells-across 4 \
+	--frames 240 --batch 2
+.PHONY: column3d-data column3d-test-data
+column3d-data: data/column3d_train.h5 data/column3d_valid.h5
+
+data/column3d_train.shard-%-of-2.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMN3D) --aspect-ratios 0.5 1 1.5 2 --friction-angles 25 30 35 40 45 \
+		--shard $*/2 --out data/column3d_train.h5
+
+data/column3d_valid.shard-%-of-2.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMN3D) --aspect-ratios 0.75 1.75 --friction-angles 27.5 37.5 \
+		--shard $*/2 --out data/column3d_valid.h5
+
+data/column3d_%.h5: data/column3d_%.shard-0-of-2.h5 data/column3d_%.shard-1-of-2.h5
+	$(VENV)/bin/diffgns dataset --merge $^ --out $@
+
+column3d-test-data: $(VENV)/.installed-test
+	nice -n 19 $(COLUMN3D) --aspect-ratios 1.25 2 --friction-angles 32.5 42.5 \
+		--out data/column3d_test.h5
+
 # issue 23: the MeshGraphNet task this machine can learn (docs/guides/meshnet.md "Reynolds
 # sweep"): one cylinder, one ~1,300-vertex mesh, Re 100-250 for training, 5 held-out Re
 # (3 between, 2 outside); two CFD processes per file, each file resumable.

@@ -361,3 +361,39 @@ def test_staged_dir_publishes_only_on_success(tmp_path):
     with pytest.raises(RuntimeError), staged_dir(fresh):
         raise RuntimeError
     assert not (tmp_path / "x").exists()
+
+
+def test_3d_column_dataset_holds_the_axisymmetric_columns_and_resumes(tmp_path):
+    """``diffgns dataset --kind column --dim 3``: each sample is the cylinder of
+    axisymmetric_column (radius = --width) at its friction angle, (T, N, 3), with a 3D
+    recipe; a 2D recipe's fingerprint is unchanged (no ``dim`` key), so older 2D files
+    still resume."""
+    from diffgns.io.datagen import column_recipe, generate_columns
+    from diffgns.io.dataset import H5TrajectoryFile
+    from diffgns.scene.builders3d import axisymmetric_column
+
+    assert "dim" not in column_recipe([1.0], [30.0], 3, 0.1, 4)
+    assert column_recipe([1.0], [30.0], 3, 0.1, 4, dim=3)["dim"] == 3
+    path = tmp_path / "c3d.h5"
+    generate_columns(path, [1.0], [25.0, 35.0], 3, width=0.05, cells_across=2, batch=2,
+                     progress=False, dim=3, domain_length=None, domain_height=None)
+    with h5py.File(path) as f:
+        assert sorted(f) == ["00000", "00001"]
+        for key, phi in (("00000", 25.0), ("00001", 35.0)):
+            g = f[key]
+            assert float(g.attrs["friction_angle"]) == phi
+            x = g["position"][...]
+            scene = axisymmetric_column(radius=0.05, aspect_ratio=1.0, friction_angle=phi,
+                                        cells_across=2)
+            x0 = scene.particles()["x"]
+            assert x.shape == (4, x0.shape[0], 3)
+            np.testing.assert_allclose(x[0], x0, atol=1e-6)
+            assert np.isfinite(x).all() and (x[-1, :, 1] < x[0, :, 1] + 1e-6).all()
+            np.testing.assert_allclose(np.asarray(g.attrs["bounds"]),
+                                       np.asarray(scene.domain), atol=1e-9)
+        assert json.loads(f.attrs["recipe"])["dim"] == 3
+    assert json.loads((tmp_path / "c3d.metadata.json").read_text())["dim"] == 3
+    assert len(H5TrajectoryFile(path)) == 2
+    # the finished file is resumed as complete: nothing is re-run
+    generate_columns(path, [1.0], [25.0, 35.0], 3, width=0.05, cells_across=2, batch=2,
+                     progress=False, dim=3, domain_length=None, domain_height=None)

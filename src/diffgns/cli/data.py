@@ -123,7 +123,8 @@ def _generate(args, shard) -> int:
         path = generate_columns(args.out, args.aspect_ratios, args.friction_angles, args.frames,
                                 width=args.width, cells_across=args.cells_across,
                                 batch=args.batch, domain_length=args.domain_length,
-                                domain_height=args.domain_height, shard=shard)
+                                domain_height=args.domain_height, shard=shard,
+                                dim=getattr(args, "dim", 2))
     else:
         path = generate_squares(args.out, args.n, args.frames, seed=args.seed, shard=shard,
                                 **squares_kw(args))
@@ -227,9 +228,15 @@ def register(sub) -> None:
     d.add_argument("--friction-angles", type=finite, nargs="+", default=[25.0, 35.0, 45.0],
                    help="friction angles, degrees in (0, 90); column: each one, squares: "
                    "uniform between their min and max (default 25 35 45)")
-    d.add_argument("--width", type=finite, default=0.1, help="column width, m (default 0.1)")
+    d.add_argument("--dim", type=int, choices=[2, 3], default=2,
+                   help="column: 2 (a column against a wall) or 3 (an axisymmetric cylinder "
+                   "of radius --width; trajectories (T, N, 3)) (default 2)")
+    d.add_argument("--width", type=finite, default=0.1,
+                   help="column width L0, m; with --dim 3 the cylinder's radius R0 "
+                   "(default 0.1)")
     d.add_argument("--cells-across", type=count, default=10,
-                   help="column: grid cells across the width, count (default 10)")
+                   help="column: grid cells across the width (3D: the radius), count "
+                   "(default 10)")
     d.add_argument("--domain-length", type=finite, default=None,
                    help="fixed box length, m (default: from the runout of each column; "
                    "squares: with --domain-height, else a 1 m box)")

@@ -28,19 +28,20 @@ from diffgns.interface import rollout
 from diffgns.io.shards import shard_writer
 from diffgns.mpm import MPM
 from diffgns.mpm.solver import max_speed
-from diffgns.scene.builders import column_collapse
-from diffgns.scene.recipes import column_samples, square_scenes
+from diffgns.scene.recipes import column_samples, column_scene, square_scenes
 from diffgns.shard import Shard
 from diffgns.trajectory import Trajectory
 
 
 def column_recipe(aspect_ratios, friction_angles, n_frames: int, width: float = 0.1,
-                  cells_across: int = 10, **scene_kw) -> dict:
-    """The fingerprint of a column-collapse dataset (JSON-serialisable)."""
+                  cells_across: int = 10, dim: int = 2, **scene_kw) -> dict:
+    """The fingerprint of a column-collapse dataset (JSON-serialisable). ``dim`` is recorded
+    only for 3D, so the fingerprints of 2D files made before it existed still match."""
+    extra = dict(dim=3) if dim == 3 else {}
     return dict(kind="column", aspect_ratios=[float(a) for a in aspect_ratios],
                 friction_angles=[float(p) for p in friction_angles], n_frames=int(n_frames),
                 width=float(width), cells_across=int(cells_across), dtype=_float_dtype(),
-                **scene_kw)
+                **extra, **scene_kw)
 
 
 def squares_recipe(n_frames: int, seed: int = 0, **scene_kw) -> dict:
@@ -82,14 +83,19 @@ def column_jobs(samples: list[dict], aspect_ratios, batch: int) -> list[list[int
 
 def generate_columns(path, aspect_ratios, friction_angles, n_frames: int, width: float = 0.1,
                      cells_across: int = 10, batch: int = 4, progress: bool = True,
-                     shard: Shard | None = None, **scene_kw) -> Path:
+                     shard: Shard | None = None, dim: int = 2, **scene_kw) -> Path:
     """Write column collapses over the (aspect ratio x friction angle) grid to ``path``
-    (shard ``shard`` of them to :func:`~diffgns.io.shards.shard_path`); returns the file."""
+    (shard ``shard`` of them to :func:`~diffgns.io.shards.shard_path`); returns the file.
+    ``dim = 3``: axisymmetric columns of radius ``width``
+    (:func:`~diffgns.scene.recipes.column_scene`), trajectories (T, N, 3)."""
     shard = shard or Shard()
     samples = column_samples(aspect_ratios, friction_angles)
     extra = dict(kind="column", width=width, cells_across=cells_across, n_frames=n_frames)
+    if dim == 3:  # (the file's metadata records the dimension itself)
+        scene_kw = {k: v for k, v in scene_kw.items()
+                    if not (k in ("domain_length", "domain_height") and v is None)}
     recipe = column_recipe(aspect_ratios, friction_angles, n_frames, width, cells_across,
-                           **scene_kw)
+                           dim, **scene_kw)
     jobs = shard.select(column_jobs(samples, aspect_ratios, batch))
     mine = [i for job in jobs for i in job]
     sims: dict[float, tuple] = {}
@@ -102,8 +108,7 @@ def generate_columns(path, aspect_ratios, friction_angles, n_frames: int, width:
                 continue
             a = samples[ids[0]]["aspect_ratio"]
             if a not in sims:
-                scene = column_collapse(width=width, aspect_ratio=a, cells_across=cells_across,
-                                        **scene_kw)
+                scene = column_scene(a, width, cells_across, dim, **scene_kw)
                 sim = MPM(scene)
                 sims[a] = (sim, sim.params(), jax.jit(jax.vmap(partial(
                     _rollout, sim, sim.init(), n_frames))))
