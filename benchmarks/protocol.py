@@ -394,8 +394,9 @@ def run_worker(run: Run, args: Sequence[str], tag: str, xla_flags: str = ""
     ``tag`` on a line of its stdout or None, its exit code). The worker inherits the thread
     setting (and pinning) of this process; ``xla_flags`` are added to its ``XLA_FLAGS``."""
     env = run.worker_env()
-    if xla_flags:
-        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {xla_flags}".strip()
+    if xla_flags:  # before the inherited flags: XLA stops parsing XLA_FLAGS at the bare
+        # `intra_op_parallelism_threads=1` of a pinned run, so a flag after it is ignored
+        env["XLA_FLAGS"] = f"{xla_flags} {env.get('XLA_FLAGS', '')}".strip()
     p = subprocess.run([sys.executable, *args], stdout=subprocess.PIPE, text=True, env=env)
     for line in p.stdout.splitlines():
         if line.startswith(tag):

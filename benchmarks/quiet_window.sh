@@ -17,6 +17,8 @@
 #   5 mpm_throughput       ~0.6 min
 #   6 mpm_profile          ~2.5 min (2 threads, then 1 thread pinned)
 #   7 scaling              ~6 min (~4 min with --sizes 1024 4096 16384 65536)
+#   + mpm_levers           ~5 min, last (2 devices / XLA options / cell order; new, not in the
+#                          total below; --threads both ~10 min)
 # Total ~31 min of runs + ~5 min of load waits; commands 1-4 alone ~22 + ~3 min.
 # Logs: runs/quiet_logs/<name>.log (LOG= to change); the exit status of each command is echoed.
 set -u
@@ -44,3 +46,4 @@ run scaling python benchmarks/scaling.py --out scaling_steal.json --wait-quiet 6
 # not in the 30-minute set (~5 min): the gradient memory/time table of docs/guides/inverse.md
 # run inverse_gns_memory python benchmarks/inverse_gns_memory.py --out inverse_gns_memory_rounds.json --wait-quiet 600
 run mpm3d_vs_taichi python benchmarks/mpm3d_vs_taichi.py --repeats 7 --threads both --wait-quiet 600
+run mpm_levers python benchmarks/mpm_levers.py --threads 2 --out mpm_levers.json --wait-quiet 600

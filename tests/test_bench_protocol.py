@@ -259,3 +259,25 @@ def test_every_benchmark_script_runs_under_the_protocol():
                if "protocol.add_arguments(" not in p.read_text()
                or "protocol.start(" not in p.read_text()]
     assert missing == [], f"benchmarks outside the protocol: {missing}"
+
+
+def test_worker_xla_flags_come_before_the_pinned_runs_bare_token(monkeypatch):
+    """XLA stops parsing XLA_FLAGS at the bare ``intra_op_parallelism_threads=1`` of a pinned
+    run: a worker's own flags (e.g. two host devices) must come before it, or they are
+    silently ignored."""
+    seen = {}
+
+    def fake_run(cmd, stdout, text, env):
+        seen["flags"] = env["XLA_FLAGS"]
+        return subprocess.CompletedProcess(cmd, 0, stdout='TAG{"ok": 1}\n')
+
+    monkeypatch.setattr(protocol.subprocess, "run", fake_run)
+    monkeypatch.setenv("XLA_FLAGS", protocol.ONE_THREAD_XLA_FLAGS)
+    run = protocol.Run(name="x", valid=True, load_before=(0.0, 0.0, 0.0), threads=1,
+                       pinned=True, mode="1")
+    out, rc = protocol.run_worker(run, ["-c", "pass"], "TAG",
+                                  xla_flags="--xla_force_host_platform_device_count=2")
+    assert out == {"ok": 1} and rc == 0
+    tokens = seen["flags"].split()
+    assert tokens[0] == "--xla_force_host_platform_device_count=2"
+    assert tokens[-1] == "intra_op_parallelism_threads=1"

@@ -148,7 +148,7 @@ def test_particle_map_keeps_every_cluster_inside_the_box():
     left wall: those clusters fall back towards rigid just enough (one factor per cluster, the
     cluster mean stays the node, the outermost particle ends inside), the right clusters
     follow the affine field exactly; where even the rigid move crosses the wall the cluster
-    contracts about its node. Nothing is clamped."""
+    contracts about its node, along the axis that needs it only. Nothing is clamped."""
     sim = MPM(small_scene())  # column on [0, 0.1] m against the left wall of a 0.8 m box
     st = sim.init()
     cluster, counts = _quadrants(st)
@@ -191,9 +191,13 @@ def test_particle_map_keeps_every_cluster_inside_the_box():
     for k in range(4):
         m = np.asarray(cluster) == k
         off = x[:, m] - np.asarray(x_node + disp)[k][:, None]
-        lam, resid = _scale_of(off, 0 * r[:, m], r[:, m])
-        assert resid < 1e-7
-        assert (0.0 < lam < 1.0) if left[k] else lam == pytest.approx(1.0, abs=1e-6)
+        # axis by axis: the cluster contracts along x (towards the wall) only; along y its
+        # offsets fit and are kept whole
+        lam_x, resid_x = _scale_of(off[0], 0 * r[0, m], r[0, m])
+        lam_y, resid_y = _scale_of(off[1], 0 * r[1, m], r[1, m])
+        assert resid_x < 1e-7 and resid_y < 1e-7
+        assert (0.0 < lam_x < 1.0) if left[k] else lam_x == pytest.approx(1.0, abs=1e-6)
+        assert lam_y == pytest.approx(1.0, abs=1e-6)
 
 
 def test_mpm_only_schedule_is_the_mpm(model):
@@ -295,3 +299,25 @@ def test_node_factor_keeps_the_trained_node_spacing():
     assert node_factor({"factor": 4, "source": {"cells_across": 8}}, 12) == 9
     with pytest.raises(ValueError, match="particles per node"):
         node_factor({"factor": 4, "source": {"cells_across": 8}}, 10)
+
+
+def test_keep_inside_limits_each_axis_apart():
+    """A cluster on the floor whose affine term stretches it along x and pushes one particle
+    below the floor's margin: only the y part is limited, the x stretch is kept whole, every
+    particle ends inside the inset box and the cluster's mean stays its node."""
+    from diffgns.hybrid.handoff import keep_inside
+
+    lo, hi, margin = jnp.array([0.0, 0.0]), jnp.array([1.0, 0.5]), 0.01
+    node = jnp.array([0.5, 0.02])
+    offset = jnp.array([[-0.01, 0.01, -0.01, 0.01], [-0.01, -0.01, 0.01, 0.01]])
+    step = jnp.array([[-0.03, 0.03, -0.03, 0.03], [-0.005, 0.0, 0.0, 0.005]])
+    cluster = jnp.zeros(4, jnp.int32)
+    x_node = jnp.broadcast_to(node[:, None], (2, 4))
+    x = keep_inside(x_node, offset, step, cluster, 1, lo, hi, margin=margin)
+    np.testing.assert_allclose(x[0], node[0] + offset[0] + step[0], atol=1e-7)  # x kept
+    assert float(x[1].min()) >= margin - 1e-7  # y limited to the margin
+    assert float(x[1, 0]) < float(node[1] + offset[1, 0]) + 1e-7  # but still stretched
+    np.testing.assert_allclose(x.mean(axis=1), node, atol=1e-7)
+    # the one-factor limiter would have scaled the x stretch too
+    unlimited = node[:, None] + offset + step
+    assert float(unlimited[1].min()) < margin
