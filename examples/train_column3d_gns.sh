@@ -18,16 +18,8 @@ DATA=${DATA:-data/column3d_train.h5}
 VALID=${VALID:-data/column3d_valid.h5}
 RUNS=${RUNS:-runs/column3d}
 NET="--radius 0.025 --latent 64 --mp-steps 5 --coarse-grain 8 --frame-stride 2 --batch-size 2"
-run() { if [ -n "${DRY:-}" ]; then echo "$@"; else "$@"; fi; }
-
-stage() {  # stage NAME INIT NOISE PUSH STEPS LR LR_FINAL
-  local out="$RUNS/$1" init=()
-  [ "$2" != "-" ] && init=(--init-from "$2")
-  if [ -d "$out/model" ]; then echo "stage $1 done ($out/model)"; return; fi
-  run diffgns train --data "$DATA" --valid "$VALID" --out "$out" $NET --noise-std "$3" \
-    --push-forward "$4" --steps "$5" --lr "$6" --lr-final "$7" --lr-decay-steps "$5" \
-    --validate-every 1500 --seed "${1#s}" "${init[@]}"
-}
+VALIDATE_EVERY=1500
+source "$(dirname "$0")/stages.sh"
 
 stage s0 - 3e-4 0 12000 1e-3 1e-5
 stage s1 "$RUNS/s0/model" 3e-4 2 3000 5e-5 5e-6
