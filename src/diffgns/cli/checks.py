@@ -140,13 +140,13 @@ def check_dataset(args) -> None:
     for path in (out, partial_path(out)):  # a file to resume must be readable
         if path.exists():
             check_h5_file(path, "--out")
-    if getattr(args, "dim", 2) == 3 and args.kind != "column":
+    dim = getattr(args, "dim", 2)
+    if dim == 3 and args.kind != "column":
         raise InputError("--dim", f"--dim 3 is for --kind column only, not --kind {args.kind}",
                          "drop --dim, or use --kind column")
     if args.kind == "column":
         from diffgns.scene.recipes import column_scenes
 
-        dim = getattr(args, "dim", 2)
         if dim == 3:
             for opt in ("domain_length", "domain_height"):
                 if getattr(args, opt) is not None:
