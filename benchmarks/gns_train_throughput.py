@@ -34,7 +34,7 @@ def train_step_call(data: str, batch: int):
                           factor=4, frame_stride=2)
     sampler = WindowSampler([t for t in trajs if t.n_particles == trajs[-1].n_particles], 5)
     b = sampler.sample(np.random.default_rng(0), batch)
-    tr = Trainer(gns, TrainConfig(batch_size=batch))
+    tr = Trainer(gns, TrainConfig(batch_size=batch), devices=jax.devices())  # all n devices
     C = 5
     history = jnp.swapaxes(jnp.asarray(b["positions"][0, :C + 1]), 0, 1)
     p = gns.init_network(jax.random.PRNGKey(0), (history, jnp.asarray(b["particle_type"][0]),

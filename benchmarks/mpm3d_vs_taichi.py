@@ -15,7 +15,8 @@ an ``n_grid^3`` node grid (the example's settings: n_grid 32 -> 8,192 particles,
 (b) diffgns: the same physics from its dimension-generic transfer kernels
     (:class:`mpm_vs_taichi.DiffgnsJFluid` with ``dim=3``: ``shape.stencil`` (27 nodes) ->
     ``transfer.p2g`` -> ``transfer.grid_velocity`` -> gravity -> ``boundaries.wall_slip`` on
-    six slabs -> ``transfer.g2p``), 50 substeps per ``lax.scan`` under ``jax.jit``.
+    six slabs -> ``transfer.g2p``), 50 substeps per ``lax.scan`` under ``jax.jit``, split over
+    the host devices as in ``mpm_vs_taichi.py`` (two at 2 threads, one pinned).
 
 Both start from the same particles (numpy ``default_rng(0)`` uniform in [0.15, 0.55]^3, the
 example's box, written into the example's fields); mean and spread of the positions after
@@ -117,7 +118,8 @@ def main(argv=None):
                     "dtype": "float32"},
         "taichi_config": ti_config,
         "diffgns_config": {"jit": f"lax.scan of {SCAN_LEN} substeps", "jax": jax.__version__,
-                           "kernels": "mpm_vs_taichi.DiffgnsJFluid(dim=3)"},
+                           "kernels": "mpm_vs_taichi.DiffgnsJFluid(dim=3)",
+                           "devices": len(sims["diffgns"].devices)},
     }
     close(run, args, payload, first, check, res, total, agree)
 

@@ -1,7 +1,8 @@
 """MPM levers not yet measured on a quiet machine: two host devices, XLA CPU options, cell order.
 
-    .venv/bin/python benchmarks/mpm_levers.py [--cells 45 90] [--repeats 7] [--frame-rounds 5]
-        [--substeps 20] [--threads 2|1|both] [--out mpm_levers.json] [--wait-quiet 600]
+    .venv/bin/python benchmarks/mpm_levers.py [--cells 45 90] [--shard-cells 16 23 32 45 90]
+        [--repeats 7] [--frame-rounds 5] [--substeps 20] [--levers shard options order]
+        [--threads 2|1|both] [--out mpm_levers.json] [--wait-quiet 600]
 
 (~5 min on a quiet 2-core machine with the defaults, 2 threads; ``--threads both`` adds the
 pinned 1-thread run, ~10 min in all.)
@@ -12,17 +13,15 @@ moving, yielding column), as in ``benchmarks/mpm_profile.py``. Three levers, eac
 current solver on the same state, in interleaved rounds (median wall and CPU time, the
 compile timed apart, ``block_until_ready`` before the clock stops), outputs compared:
 
-1. **Two host devices (shard_map).** In a worker process with two CPU devices
-   (``jax_num_cpu_devices=2``, set before the backend starts): the particles are split in
-   two halves over the two devices (``jax.shard_map``, grid replicated); each device
-   computes stress, stencil and MLS contributions of its half and scatters them into a
-   full grid, a ``psum`` adds the two grids, then every device runs the grid update and
-   the G2P of its half. Timed as ``--substeps`` chained substeps (one ``lax.scan``)
-   against the same chain of ``MPM(scene).substep`` on one device of the same process
-   (the sharded substep repeats :meth:`MPM.substep`'s operations; the comparison checks
-   it). The ``psum`` adds in another order than the one scatter: max |x| and |v|
-   differences after 1 and after ``--substeps`` substeps are reported (float32 round-off
-   expected).
+1. **Two host devices (the library's sharded MPM).** In a worker process with two CPU
+   devices (``jax_num_cpu_devices=2``, set before the backend starts): one frame of
+   ``MPM(scene, devices=2)`` (particles split over the devices with ``jax.shard_map``,
+   each device scattering its share into a full grid, one ``psum`` of the grids per
+   substep; :mod:`diffgns.mpm.solver`) against one frame of ``MPM(scene, devices=1)``, at
+   the sizes of ``--shard-cells`` (1,024 to 32,400 particles: where the sharded frame
+   starts to pay sets :data:`diffgns.hostdevices.AUTO_MIN_PARTICLES`). The ``psum`` adds
+   in another order than the one scatter: max |x| and |v| differences after the frame are
+   reported (float32 round-off expected).
 2. **XLA CPU compiler options.** One whole frame (``jax.jit(MPM.step)``: ``scene.substeps``
    substeps in a ``lax.scan``) compiled with each ``compiler_options`` set of
    :data:`XLA_OPTIONS` (XNNPACK off, XNNPACK graph fusion, oneDNN, fast math, 512-bit
@@ -32,7 +31,7 @@ compile timed apart, ``block_until_ready`` before the clock stops), outputs comp
    toggle ``xla_cpu_use_thunk_runtime`` is one (the thunk runtime is the only one left).
    Also recorded: whether the optimised HLO differs from the default's, and max |x|
    difference after the frame.
-3. **Cell-sorted particles.** The chain of item 1 (one device) on the particles in the
+3. **Cell-sorted particles.** ``--substeps`` chained one-device substeps on the particles in the
    order the scene builds them (lattice order, x-major like the grid), sorted by base cell
    once (a sort per frame, its cost timed apart), randomly shuffled (the worst order), and
    with a sort by base cell before every substep: does XLA's scatter get faster with sorted
@@ -58,17 +57,12 @@ import protocol
 from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
-from diffgns.clamp import ClampCount, clamp_positions
-from diffgns.mpm import boundaries
-from diffgns.mpm import linalg as la
-from diffgns.mpm.shape import stencil
-from diffgns.mpm.transfer import g2p, grid_velocity, p2g
+from diffgns.clamp import ClampCount
 from diffgns.scene.builders import column_collapse
 from diffgns.timing import interleave, time_call
 
 NAME = "mpm_levers"
 TAG = "MPM_LEVERS_SHARD_RESULT "
-AXIS = "p"
 SETTLE_FRAMES = 4  # frames of collapse before the measured state
 
 #: compiler_options sets timed against the default in item 2 (names -> options). Checked
@@ -139,95 +133,30 @@ def timing_row(res, name: str, per: int) -> dict:
 
 
 # ------------------------------------------------------------------ 1. two devices
-def sharded_substep(sim: MPM, params, s, body):
-    """:meth:`MPM.substep` on this device's particles (the shard_map body): the same
-    operations, with the scattered grid summed over the devices (``psum``) and the clamp
-    count summed. ``body``: this device's particles' body ids."""
-    dt, dx, n_nodes, d = sim.dt, sim.dx, sim.n_nodes, sim.dim
-    F_trial = s.F + dt * la.matmul(s.C, s.F)
-    tau, F = sim.stress(params, s, F_trial)  # one material group: any slice length works
-    mass = params.rho[body] * s.vol
-    X = (s.x - jnp.asarray(sim.origin, s.x.dtype)[:, None]) / dx
-    idx, w, dpos = stencil(X, sim.grid_shape)
-    affine = mass * s.C - (dt * 4.0 / dx**2) * s.vol * tau
-    grid = jax.lax.psum(p2g(idx, w, dpos, mass, mass * s.v, affine, n_nodes, dx), AXIS)
-    gv = grid_velocity(grid)
-    if "gravity" in sim.effects:
-        gv = gv + dt * params.gravity[:, None]
-    if "damping" in sim.effects:
-        gv = gv * jnp.exp(-dt * params.damping)
-    gv = boundaries.apply_walls(gv.reshape(d, *sim.grid_shape), sim.scene.wall_list,
-                                params.wall_mu, sim.scene.padding, sim.scene.n_cells)
-    gv = gv.reshape(d, n_nodes)
-    if sim.obstacle_nodes:
-        gv = boundaries.apply_obstacles(gv, sim.obstacle_nodes, params.obstacle_mu)
-    v, C = g2p(idx, w, dpos, gv.reshape(d, *sim.grid_shape), dx)
-    x = s.x + dt * v
-    lo, hi = jnp.asarray(sim.lo, x.dtype), jnp.asarray(sim.hi, x.dtype)
-    x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
-    clamp = ClampCount(jax.lax.psum(clamp.moved, AXIS), jax.lax.pmax(clamp.shift, AXIS))
-    return s.replace(x=x, v=v, C=C, F=F, clamp=s.clamp.merge(clamp))
-
-
-def state_specs(state):
-    """PartitionSpecs of an MPMState: particles (last axis) split, clamp replicated."""
-    from jax.sharding import PartitionSpec as P
-
-    return state.replace(x=P(None, AXIS), v=P(None, AXIS), C=P(None, None, AXIS),
-                         F=P(None, None, AXIS), vol=P(AXIS),
-                         clamp=ClampCount(P(), P()))
-
-
-def sharded_chain(sim: MPM, k: int, mesh, state):
-    """``(params, state, body) -> k chained substeps`` over the devices of ``mesh``."""
-    from jax.sharding import PartitionSpec as P
-
-    spec = state_specs(state)
-
-    def local(params, s, body):
-        return jax.lax.scan(lambda c, _: (sharded_substep(sim, params, c, body), None), s,
-                            None, length=k)[0]
-
-    return jax.shard_map(local, mesh=mesh, in_specs=(P(), spec, P(AXIS)), out_specs=spec)
-
-
-def shard_size(cells: int, repeats: int, k: int, state_dir: str | None) -> dict:
-    """Item 1 at one size (in the two-device worker)."""
-    from jax.sharding import Mesh, NamedSharding
-
-    devices = jax.devices()
+def shard_size(cells: int, repeats: int, state_dir: str | None) -> dict:
+    """Item 1 at one size (in the two-device worker): one frame of ``MPM(scene,
+    devices=1)`` against ``MPM(scene, devices=2)`` (the library's sharded frame)."""
+    devices = jax.local_devices()
     if len(devices) < 2:
         raise SystemExit(f"mpm_levers worker: 2 host devices needed, got {len(devices)}")
-    mesh = Mesh(np.array(devices[:2]), (AXIS,))
-    scene, sim, params, state = collapsed(cells, state_dir)
-    body = jnp.asarray(sim.body, jnp.int32)
-    spec = state_specs(state)
-    put = jax.tree.map(lambda p: NamedSharding(mesh, p), spec,
-                       is_leaf=lambda x: isinstance(x, jax.sharding.PartitionSpec))
-    s2 = jax.device_put(state, put)
-    b2 = jax.device_put(body, NamedSharding(mesh, jax.sharding.PartitionSpec(AXIS)))
-    p2 = jax.device_put(params, NamedSharding(mesh, jax.sharding.PartitionSpec()))
-    one, one_c = aot(chain(sim.substep, k), params, state)
-    two, two_c = aot(sharded_chain(sim, k, mesh, state), p2, s2, b2)
-    # outputs: one substep and k substeps
-    one1, _ = aot(chain(sim.substep, 1), params, state)
-    two1, _ = aot(sharded_chain(sim, 1, mesh, state), p2, s2, b2)
-    a1, b1 = one1(params, state), two1(p2, s2, b2)
-    res = interleave({"one_device": lambda: one(params, state),
-                      "two_devices": lambda: two(p2, s2, b2)}, repeats)
-    ak, bk = res.outputs["one_device"], res.outputs["two_devices"]
-    rows = {k_: timing_row(res, k_, k) for k_ in res.names}
-    rows["one_device"]["compile_s"], rows["two_devices"]["compile_s"] = one_c, two_c
+    scene, _, params, state = collapsed(cells, state_dir)
+    one, two = MPM(scene, devices=1), MPM(scene, devices=2)
+    f1, c1 = aot(one.step, params, state)
+    f2, c2 = aot(two.step, params, state)
+    res = interleave({"one_device": lambda: f1(params, state),
+                      "two_devices": lambda: f2(params, state)}, repeats)
+    a, b = res.outputs["one_device"], res.outputs["two_devices"]
+    n_sub = int(scene.substeps)
+    rows = {k: timing_row(res, k, n_sub) for k in res.names}
+    rows["one_device"]["compile_s"], rows["two_devices"]["compile_s"] = c1, c2
     return {
         "cells_across": cells, "n_particles": scene.n_particles,
-        "grid_shape": list(scene.grid_shape), "substeps_per_call": k,
+        "grid_shape": list(scene.grid_shape), "substeps_per_call": n_sub,
         "devices": [str(d) for d in devices], "timing": rows,
         "speedup_two_over_one": 1.0 / res.ratio("two_devices", "one_device"),
         "cpu_ratio_two_over_one": res.ratio("two_devices", "one_device", cpu=True),
-        "max_abs_diff_1_substep": {"x_m": max_diff(a1.x, b1.x), "v_m_s": max_diff(a1.v, b1.v)},
-        f"max_abs_diff_{k}_substeps": {"x_m": max_diff(ak.x, bk.x),
-                                       "v_m_s": max_diff(ak.v, bk.v)},
-        "clamp_moved_equal": int(ak.clamp.moved) == int(bk.clamp.moved),
+        "max_abs_diff_frame": {"x_m": max_diff(a.x, b.x), "v_m_s": max_diff(a.v, b.v)},
+        "clamp_moved_equal": int(a.clamp.moved) == int(b.clamp.moved),
         "rounds": res.to_json()["rounds"],
     }
 
@@ -242,23 +171,22 @@ def shard_worker(args) -> None:
     warm_up_jax()
     sizes = []
     for c in args.cells:
-        sizes.append(shard_size(c, args.repeats, args.substeps, args.state_dir))
+        sizes.append(shard_size(c, args.repeats, args.state_dir))
         run.print(f"  [worker] {c} cells done", file=sys.stderr)
     print(TAG + json.dumps({"sizes": sizes, "xla_flags": os.environ.get("XLA_FLAGS"),
                             "jax_num_cpu_devices": jax.config.jax_num_cpu_devices}),
           flush=True)
 
 
-def report_shard(run: protocol.Run, r: dict, k: int) -> None:
+def report_shard(run: protocol.Run, r: dict) -> None:
     t = r["timing"]
     o, w = t["one_device"], t["two_devices"]
-    d1, dk = r["max_abs_diff_1_substep"], r[f"max_abs_diff_{k}_substeps"]
-    run.print(f"  two devices: one device {o['us_per_substep']:.0f} us/substep "
+    d = r["max_abs_diff_frame"]
+    run.print(f"  N = {r['n_particles']}: one device {o['us_per_substep']:.0f} us/substep "
               f"(CPU {o['cpu_us_per_substep']:.0f}), two {w['us_per_substep']:.0f} us "
               f"(CPU {w['cpu_us_per_substep']:.0f}): speed-up {r['speedup_two_over_one']:.2f}x; "
               f"compile {o['compile_s']:.1f} / {w['compile_s']:.1f} s; max |dx| "
-              f"{d1['x_m']:.1e} m after 1 substep, {dk['x_m']:.1e} m after {k} "
-              f"(|dv| {d1['v_m_s']:.1e}, {dk['v_m_s']:.1e} m/s)")
+              f"{d['x_m']:.1e} m, |dv| {d['v_m_s']:.1e} m/s after a frame")
 
 
 # ------------------------------------------------------------------ 2. XLA options
@@ -388,6 +316,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cells", type=int, nargs="+", default=[45, 90],
                     help="cells across the column (N = 4 cells^2 particles)")
+    ap.add_argument("--shard-cells", type=int, nargs="+", default=[16, 23, 32, 45, 90],
+                    help="sizes of item 1 (cells across; N = 1,024 ... 32,400 particles)")
     ap.add_argument("--repeats", type=int, default=7,
                     help="interleaved rounds of items 1 and 3 (>= 3)")
     ap.add_argument("--frame-rounds", type=int, default=5,
@@ -412,22 +342,24 @@ def main(argv=None):
                "dtype": str(np.dtype(jnp.asarray(0.0).dtype)), "settle_frames": SETTLE_FRAMES,
                "substeps_per_call": args.substeps}
     with tempfile.TemporaryDirectory(prefix="mpm_levers_") as state_dir:
-        for c in args.cells:  # settle each column once, for this process and the worker
-            collapsed(c, state_dir)
+        shard_cells = args.shard_cells if "shard" in args.levers else []
+        for c in sorted(set(args.cells) | set(shard_cells)):  # settle each column once,
+            collapsed(c, state_dir)                            # for this process and worker
         shard = None
         if "shard" in args.levers:
             cmd = [str(Path(__file__).resolve()), "--shard-worker", "--cells",
-                   *map(str, args.cells), "--repeats", str(args.repeats), "--substeps",
-                   str(args.substeps), "--state-dir", state_dir]
+                   *map(str, shard_cells), "--repeats", str(args.repeats),
+                   "--state-dir", state_dir]
             shard, code = protocol.run_worker(run, cmd, TAG)  # 2 devices: shard_worker
             if shard is None:
                 raise SystemExit(f"mpm_levers: two-device worker failed (exit {code})")
             payload["two_devices"] = shard
+            run.print("two host devices (the library's sharded frame against one device):")
+            for r in shard["sizes"]:
+                report_shard(run, r)
         payload["xla_options"], payload["cell_order"] = [], []
-        for i, c in enumerate(args.cells):
+        for c in args.cells:
             run.print(f"N = {4 * c * c} ({c} cells across):")
-            if shard is not None:
-                report_shard(run, shard["sizes"][i], args.substeps)
             if "options" in args.levers:
                 payload["xla_options"].append(option_size(run, c, args.frame_rounds,
                                                           state_dir))

@@ -16,7 +16,9 @@ Initial positions: numpy ``default_rng(0)`` uniform in [0.2, 0.6]^2, shared by b
     -> ``transfer.p2g`` -> ``transfer.grid_velocity`` -> gravity -> ``boundaries.wall_slip``
     on the four slabs -> ``transfer.g2p``, in the
     component-major layout ((2, N) vectors, (2, 2, N) matrices), 50 substeps in a
-    ``lax.scan`` under ``jax.jit``.
+    ``lax.scan`` under ``jax.jit``, the particles split over the process's host devices
+    as ``MPM(scene)`` does by default (``jax.shard_map``, one ``psum`` of the grids per
+    substep; two devices at 2 threads, one in the pinned 1-thread run).
 
 Speed (``benchmarks/protocol.py``, ``benchmarks/timing.py``): after a first (compiling)
 segment each, ``--repeats`` rounds; a round times one segment of ``--substeps-per-repeat``
@@ -208,6 +210,8 @@ class DiffgnsJFluid:
     def __init__(self, dim: int = 2, n_grid: int = N_GRID, dt: float = DT):
         import jax
         import jax.numpy as jnp
+        from jax.sharding import Mesh
+        from jax.sharding import PartitionSpec as Spec
 
         from diffgns.mpm.boundaries import wall_slip
         from diffgns.mpm.shape import stencil
@@ -238,6 +242,8 @@ class DiffgnsJFluid:
             for a in range(dim):
                 affine = affine.at[a, a].add(-stress_k * tau)
             grid = p2g(idx, w, dpos, mass, mass * v, affine, n_nodes, dx)
+            if axis is not None:  # sharded as MPM(scene) on two host devices: sum the grids
+                grid = jax.lax.psum(grid, axis)
             gv = grid_velocity(grid)
             gv = gv.at[1].add(-dt * GRAVITY).reshape(dim, *(n_grid,) * dim)
             for sl, normal in slabs:
@@ -248,17 +254,28 @@ class DiffgnsJFluid:
             J = J * (1.0 + dt * sum(C[a, a] for a in range(dim)))
             return (x, v, C, J), None
 
-        @jax.jit
-        def run_scan(state):
+        # the library's default: the particles split over the host devices diffgns asks for
+        # (two on a 2-core machine, one when pinned to a core; diffgns.hostdevices), one
+        # psum of the grids per substep, as MPM(scene) does for N >= AUTO_MIN_PARTICLES
+        self.devices = jax.local_devices() if jax.default_backend() == "cpu" else []
+        axis = "p" if len(self.devices) > 1 else None
+
+        def scan(state):
             return jax.lax.scan(substep, state, None, length=SCAN_LEN)[0]
 
-        self._run_scan = run_scan
+        if axis is not None:
+            spec = (Spec(None, axis), Spec(None, axis), Spec(None, None, axis), Spec(axis))
+            scan = jax.shard_map(scan, mesh=Mesh(np.array(self.devices), (axis,)),
+                                 in_specs=(spec,), out_specs=spec)
+        self._run_scan = jax.jit(scan)
         self.state = None
         self.v0 = V0 if dim == 2 else (0.0,) * dim
 
     def reset(self, x0: np.ndarray):
         jnp, d = self.jnp, self.dim
         n = len(x0)
+        if len(self.devices) > 1 and n % len(self.devices):
+            raise ValueError(f"{n} particles do not split over {len(self.devices)} devices")
         x = jnp.asarray(x0.T, jnp.float32)
         v = jnp.broadcast_to(jnp.asarray(self.v0, jnp.float32)[:, None], (d, n))
         self.state = self.jax.block_until_ready(
@@ -469,6 +486,7 @@ def main(argv=None):
         },
         "taichi_config": ti_config,
         "diffgns_config": {"jit": f"lax.scan of {SCAN_LEN} substeps", "jax": jax.__version__,
+                           "devices": len(sims["diffgns"].devices),
                            "kernels": ["shape.stencil", "transfer.p2g",
                                        "transfer.grid_velocity", "boundaries.wall_slip",
                                        "transfer.g2p"]},

@@ -1,5 +1,14 @@
+import os
+
 import jax
 import pytest
+
+# the test process has the two host devices diffgns asks for on a 2-core machine, on any
+# machine (tests/test_mpm_sharded.py), asked for before any test module starts JAX
+os.environ.setdefault("DIFFGNS_HOST_DEVICES", "2")
+from diffgns import hostdevices  # noqa: E402
+
+hostdevices.request()
 
 
 @pytest.fixture

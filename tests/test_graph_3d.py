@@ -133,10 +133,13 @@ MODELS_2D = [("gns_small", 8), ("gns_columns", 8), ("gns_cg16", 16), ("gns_cg16_
 @pytest.mark.parametrize("name, cells", [
     pytest.param(n, c, marks=() if n == "gns_cg16_pfn" else pytest.mark.slow)
     for n, c in MODELS_2D])
-def test_shipped_2d_models_are_bit_identical(name, cells):
+def test_shipped_2d_models_equal_the_2d_only_code(name, cells):
     """A 20-frame rollout (jitted) and the node features with two obstacles of each shipped
-    model on a column collapse's nodes equal, bit for bit, those of the 2D-only code
-    (recorded before issue 24); so do the coarse-graining clusters."""
+    model on a column collapse's nodes equal those of the 2D-only code (recorded before
+    issue 24): bit for bit on the machine that recorded them, to float32 round-off on
+    others (an AMD EPYC VM, 2026-12-03: 3.7e-8 m after 20 frames, a CPU whose vector code
+    rounds differently; a 3D-generalisation slip moves positions by far more). The
+    coarse-graining clusters are integers: equal."""
     from diffgns.graph.train_loop import load_model
     from diffgns.models import model_path
 
@@ -152,11 +155,13 @@ def test_shipped_2d_models_are_bit_identical(name, cells):
     material = jnp.full(n, g["material"][0], jnp.float32)
     state = gns.init(hist, ptype)
     frames, _, _ = rollout_safe(gns, GNSParams(params, material), state, 20)
-    np.testing.assert_array_equal(np.asarray(frames.positions), g[f"{name}_rollout"])
+    np.testing.assert_allclose(np.asarray(frames.positions), g[f"{name}_rollout"], rtol=0,
+                               atol=1e-6)
     obstacles = jnp.asarray([[0.1, 0.0, 0.16, 0.05], [0.3, 0.0, 0.4, 0.02]], jnp.float32)
     nf = node_features(hist, gns.config.bounds, gns.config.radius, gns.normalizer.velocity,
                        material, obstacles)
-    np.testing.assert_array_equal(np.asarray(nf), g[f"{name}_features_obstacles"])
+    np.testing.assert_allclose(np.asarray(nf), g[f"{name}_features_obstacles"], rtol=1e-6,
+                               atol=1e-6)
 
 
 # ------------------------------------------------------------------- neighbours, features

@@ -7,6 +7,7 @@ submodule that needs no JAX (``diffgns.cli``, ``diffgns.errors``) stays fast:
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the same names, for type checkers and IDEs
@@ -19,6 +20,11 @@ if TYPE_CHECKING:  # the same names, for type checkers and IDEs
     from diffgns.trajectory import Trajectory
 
 __version__ = "0.1.0"
+
+if "jax" in sys.modules:  # JAX already imported: ask for host devices before it starts
+    from diffgns import hostdevices as _hostdevices
+
+    _hostdevices.request()
 
 __all__ = [
     "ParticleFrame", "Simulator", "rollout", "rollout_jit", "rollout_safe",

@@ -50,8 +50,8 @@ class ClampCount(NamedTuple):
                           jnp.maximum(self.shift, other.shift.astype(self.shift.dtype)))
 
 
-def clamp_positions(x: jax.Array, lo: jax.Array, hi: jax.Array, axis: int = -1
-                    ) -> tuple[jax.Array, ClampCount]:
+def clamp_positions(x: jax.Array, lo: jax.Array, hi: jax.Array, axis: int = -1,
+                    valid: jax.Array | None = None) -> tuple[jax.Array, ClampCount]:
     """``clip(x, lo, hi)`` and the count of positions it moved.
 
     Args:
@@ -59,6 +59,7 @@ def clamp_positions(x: jax.Array, lo: jax.Array, hi: jax.Array, axis: int = -1
             (d, N) with ``axis=0``.
         lo, hi: bounds broadcastable against ``x`` (e.g. (d,) or (d, 1)), m.
         axis: the coordinate axis of ``x``.
+        valid: optional (N,) bool: positions to count (padding is clamped, not counted).
 
     Returns:
         ``(x_clamped, ClampCount)``; the count has no gradient (the clamped positions have
@@ -67,7 +68,10 @@ def clamp_positions(x: jax.Array, lo: jax.Array, hi: jax.Array, axis: int = -1
     y = jnp.clip(x, lo, hi)
     d = jax.lax.stop_gradient(y - x)
     moved = jnp.any(d != 0, axis=axis)
-    shift = jnp.sqrt(jnp.max(jnp.sum(d * d, axis=axis), initial=0.0))
+    d2 = jnp.sum(d * d, axis=axis)
+    if valid is not None:
+        moved, d2 = moved & valid, jnp.where(valid, d2, 0.0)
+    shift = jnp.sqrt(jnp.max(d2, initial=0.0))
     return y, ClampCount(jnp.sum(moved, dtype=jnp.int32), shift.astype(x.dtype))
 
 

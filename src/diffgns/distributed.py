@@ -116,10 +116,22 @@ def is_main() -> bool:
 
 
 # ----------------------------------------------------------------------- arrays
+def process_devices() -> list[Any]:
+    """The first device of every process (one per process, in process order): the default
+    data-parallel mesh. A process may hold more (diffgns asks JAX for two host devices on a
+    2-core CPU, :mod:`diffgns.hostdevices`, for the sharded MPM); training uses them only
+    when given them explicitly."""
+    first: dict[int, Any] = {}
+    for d in jax.devices():
+        first.setdefault(d.process_index, d)
+    return [first[i] for i in sorted(first)]
+
+
 def data_mesh(devices: Sequence[Any] | None = None) -> Mesh:
-    """A 1-D mesh with axis ``"data"`` over ``devices`` (default: every device of every
-    process, ``jax.devices()``)."""
-    return Mesh(np.array(list(devices) if devices is not None else jax.devices()), ("data",))
+    """A 1-D mesh with axis ``"data"`` over ``devices`` (default: one device per process,
+    :func:`process_devices`)."""
+    devs = list(devices) if devices is not None else process_devices()
+    return Mesh(np.array(devs), ("data",))
 
 
 def replicated(mesh: Mesh | None = None) -> NamedSharding:

@@ -34,7 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns import hostdevices
 from diffgns.clamp import ClampCount
+
+hostdevices.request()  # two host devices for the sharded MPM, if JAX has not started yet
 
 __all__ = [
     "Simulator", "ParticleFrame", "rollout", "rollout_jit", "rollout_safe", "scan_frames",

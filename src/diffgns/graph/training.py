@@ -90,8 +90,9 @@ class Trainer:
     """Owns the jitted, device-parallel training step for one GNS and optimiser."""
 
     def __init__(self, gns: GNS, cfg: TrainConfig, devices=None):
-        """``devices``: the mesh (default every device of every process, ``jax.devices()``);
-        ``cfg.batch_size`` must be a multiple of their number."""
+        """``devices``: the mesh (default one device per process,
+        :func:`diffgns.distributed.process_devices`); ``cfg.batch_size`` must be a multiple
+        of their number."""
         self.gns, self.cfg = gns, cfg
         self.opt = make_optimizer(cfg)
         self.mesh = data_mesh(devices)

@@ -9,15 +9,25 @@ The MPM is a :class:`diffgns.interface.Simulator`: ``step(params, state)`` advan
 (``scene.substeps`` substeps of ``substep``; with ``checkpoint_substeps`` each is
 ``jax.checkpoint``-ed so reverse mode stores one state per frame), ``observe(state)`` gives
 a :class:`~diffgns.interface.ParticleFrame`.
+
+On a CPU with two host devices (diffgns asks for them, :mod:`diffgns.hostdevices`) a frame of
+a scene with enough particles runs *sharded*: the particles are split over the devices
+(``jax.shard_map``; each material group padded to a multiple of the device count with
+massless copies), each device scatters its share into a full grid, one ``psum`` adds the
+grids, and every device runs the grid update and the G2P of its share. The same
+:meth:`MPM._substep` serves both layouts; the state a user sees is the same either way.
 """
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffgns import hostdevices
 from diffgns.clamp import ClampCount, clamp_positions
 from diffgns.errors import UnstableError
 from diffgns.interface import ParticleFrame, rollout_jit
@@ -28,6 +38,25 @@ from diffgns.mpm.state import MPMParams, MPMState
 from diffgns.mpm.transfer import g2p, grid_velocity, p2g
 from diffgns.scene.materials import Fluid, Sand, friction_feature
 from diffgns.trajectory import ELASTIC, FLUID, SAND, Trajectory
+
+AXIS = "particles"  # the shard_map axis of the sharded substep
+
+
+@dataclasses.dataclass(frozen=True)
+class Share:
+    """The particles one substep sees (static): all of them, or one device's share.
+
+    Attributes:
+        groups: particle slices per material effect, e.g. {"sand": slice(0, 1200)}.
+        single: per group, its one body id, or None when it holds several bodies (then
+            per-particle parameters are gathered with the body ids passed to the substep).
+        axis: the ``shard_map`` axis to sum the grid and the clamp counts over (None: the
+            substep sees every particle).
+    """
+
+    groups: dict[str, slice]
+    single: dict[str, int | None]
+    axis: str | None = None
 
 
 class MPM:
@@ -43,9 +72,16 @@ class MPM:
             state per frame instead of one per substep. Use it for gradients through long
             rollouts; it costs ~4% in forward runs (measured against the plain step,
             ``runs/ab_old_new.py``), so it is off by default.
+        devices: host devices a frame is sharded over: ``"auto"`` (default: every local CPU
+            device when the backend is the CPU and the scene has at least
+            :data:`diffgns.hostdevices.AUTO_MIN_PARTICLES` particles), ``1`` or None (one
+            device), an integer, or a list of jax devices
+            (:func:`diffgns.hostdevices.mpm_devices`). Results agree with one device to
+            float round-off (the grid is summed in another order).
     """
 
-    def __init__(self, scene, dtype=None, checkpoint_substeps: bool = False):
+    def __init__(self, scene, dtype=None, checkpoint_substeps: bool = False,
+                 devices: Any = "auto"):
         self.scene = scene
         self.frame_dt = float(scene.frame_dt)
         self.checkpoint_substeps = bool(checkpoint_substeps)
@@ -65,6 +101,10 @@ class MPM:
         self.groups = scene.material_groups()
         self.obstacle_nodes = boundaries.obstacle_nodes(
             scene.obstacles, self.grid_shape, self.origin, self.dx) if scene.obstacles else {}
+        self.share = Share(self.groups, self._single_bodies(self.groups, self.body))
+        self.devices = hostdevices.mpm_devices(devices, len(self.body), self.dim,
+                                               self.groups)
+        self._layout = None if self.devices is None else self._shard_layout(len(self.devices))
 
     # ------------------------------------------------------------ construction
     def params(self) -> MPMParams:
@@ -88,19 +128,32 @@ class MPM:
         return jnp.where(is_sand, tan, 0.0)
 
     # ------------------------------------------------------------------ physics
-    def _per_particle(self, arr, sl):
-        ids = self.body[sl]
-        if np.all(ids == ids[0]):
-            return arr[int(ids[0])]  # one body in the group: a broadcast scalar
-        return arr[ids]
+    @staticmethod
+    def _single_bodies(groups: dict[str, slice], body: np.ndarray) -> dict[str, int | None]:
+        out: dict[str, int | None] = {}
+        for eff, sl in groups.items():
+            ids = body[sl]
+            out[eff] = int(ids[0]) if np.all(ids == ids[0]) else None
+        return out
 
-    def stress(self, params: MPMParams, state: MPMState, F=None):
-        """Kirchhoff stress tau (d,d,N) Pa and projected F of every particle."""
+    @staticmethod
+    def _per_particle(arr, body, share: Share, eff: str, sl: slice):
+        one = share.single[eff]
+        if one is not None:
+            return arr[one]  # one body in the group: a broadcast scalar
+        return arr[body[sl]]
+
+    def stress(self, params: MPMParams, state: MPMState, F=None, *, body=None,
+               share: Share | None = None):
+        """Kirchhoff stress tau (d,d,N) Pa and projected F of every particle (``body``,
+        ``share``: the particles' body ids and :class:`Share`, default the scene's)."""
         F = state.F if F is None else F
+        body = self.body if body is None else body
+        share = self.share if share is None else share
         taus, Fs = [], []
-        for eff, sl in self.groups.items():
+        for eff, sl in share.groups.items():
             Fg = F[:, :, sl]
-            pp = partial(self._per_particle, sl=sl)
+            pp = partial(self._per_particle, body=body, share=share, eff=eff, sl=sl)
             if eff == "elastic_linear":
                 t, f = constitutive.elastic_linear(Fg, pp(params.E), pp(params.nu))
             elif eff == "elastic_corotated":
@@ -127,15 +180,26 @@ class MPM:
         return params.rho[self.body] * state.vol
 
     def substep(self, params: MPMParams, state: MPMState) -> MPMState:
-        """One explicit MLS-MPM substep of ``self.dt`` seconds."""
+        """One explicit MLS-MPM substep of ``self.dt`` seconds (on one device; :meth:`step`
+        shards its substeps when the MPM has several devices)."""
+        return self._substep(params, state, self.body, self.share)
+
+    def _substep(self, params: MPMParams, state: MPMState, body, share: Share,
+                 real=None) -> MPMState:
+        """The substep on the particles of ``share``: every particle (``share.axis`` None),
+        or one device's share inside ``shard_map`` (grid and clamp counts summed over
+        ``share.axis``). ``body``: (n,) body ids of these particles; ``real``: (n,) bool,
+        False for padding (counted in no clamp), None when all are real."""
         dt, dx, n_nodes, d = self.dt, self.dx, self.n_nodes, self.dim
         F_trial = state.F + dt * la.matmul(state.C, state.F)
-        tau, F = self.stress(params, state, F_trial)
-        mass = self.mass(params, state)
+        tau, F = self.stress(params, state, F_trial, body=body, share=share)
+        mass = params.rho[body] * state.vol
         X = (state.x - jnp.asarray(self.origin, state.x.dtype)[:, None]) / dx
         idx, w, dpos = stencil(X, self.grid_shape)
         affine = mass * state.C - (dt * 4.0 / dx**2) * state.vol * tau
         grid = p2g(idx, w, dpos, mass, mass * state.v, affine, n_nodes, dx)
+        if share.axis is not None:
+            grid = jax.lax.psum(grid, share.axis)
         gv = grid_velocity(grid)
         if "gravity" in self.effects:
             gv = gv + dt * params.gravity[:, None]
@@ -150,18 +214,83 @@ class MPM:
         x = state.x + dt * v
         lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
         # never leave the domain (and the grid), and count it (diffgns.clamp)
-        x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
+        x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0, valid=real)
+        if share.axis is not None:
+            clamp = ClampCount(jax.lax.psum(clamp.moved, share.axis),
+                               jax.lax.pmax(clamp.shift, share.axis))
         return state.replace(x=x, v=v, C=C, F=F, clamp=state.clamp.merge(clamp))
 
     def step(self, params: MPMParams, state: MPMState) -> MPMState:
-        """Advance one frame (``scene.substeps`` substeps of ``scene.substep_dt`` s)."""
+        """Advance one frame (``scene.substeps`` substeps of ``scene.substep_dt`` s), on one
+        device or sharded over ``self.devices`` (not under ``jax.disable_jit``)."""
+        state = state.replace(clamp=ClampCount.zero(state.x.dtype))  # counts of this frame
+        # eagerly (jax.disable_jit) a shard_map runs op by op per device, far slower than the
+        # one-device substeps, which give the same frame up to round-off
+        if self._layout is not None and not jax.config.jax_disable_jit:
+            return self._step_sharded(params, state)
         sub = self.substep
         if self.checkpoint_substeps:
             sub = jax.checkpoint(sub, prevent_cse=False)
-        state = state.replace(clamp=ClampCount.zero(state.x.dtype))  # counts of this frame
         state, _ = jax.lax.scan(lambda s, _: (sub(params, s), None), state, None,
                                 length=self.n_sub)
         return state
+
+    # ------------------------------------------------------------------ sharding
+    def _shard_layout(self, n_dev: int) -> dict[str, Any]:
+        """Static layout of the sharded frame over ``n_dev`` devices: every material group
+        split into ``n_dev`` equal parts (padded with copies of its first particle), device
+        ``k``'s block holding part ``k`` of each group in group order.
+
+        Returns ``src`` (n_dev M,) the particle of each slot, ``real`` (n_dev M,) bool,
+        ``slot`` (N,) the slot of each particle, ``body`` (n_dev M,) body ids and the
+        per-device :class:`Share`."""
+        parts = [(eff, sl, -(-(sl.stop - sl.start) // n_dev)) for eff, sl in
+                 self.groups.items()]
+        M = sum(m for _, _, m in parts)
+        src = np.zeros(n_dev * M, np.int64)
+        real = np.zeros(n_dev * M, bool)
+        local: dict[str, slice] = {}
+        start = 0
+        for eff, sl, m in parts:
+            local[eff] = slice(start, start + m)
+            for k in range(n_dev):
+                ids = np.arange(sl.start + k * m, min(sl.start + (k + 1) * m, sl.stop))
+                at = k * M + start
+                src[at:at + m] = sl.start  # padding: a massless copy of the group's first
+                src[at:at + len(ids)] = ids
+                real[at:at + len(ids)] = True
+            start += m
+        slot = np.empty(len(self.body), np.int64)
+        slot[src[real]] = np.flatnonzero(real)
+        mesh = jax.sharding.Mesh(np.array(self.devices), (AXIS,))
+        return dict(src=src, real=real, slot=slot, body=self.body[src].astype(np.int32),
+                    share=Share(local, self.share.single, AXIS), mesh=mesh)
+
+    def _step_sharded(self, params: MPMParams, state: MPMState) -> MPMState:
+        from jax.sharding import PartitionSpec as Spec
+
+        lay = self._layout
+        assert lay is not None
+        src, slot, share = lay["src"], lay["slot"], lay["share"]
+        padded = state.replace(x=state.x[:, src], v=state.v[:, src], C=state.C[..., src],
+                               F=state.F[..., src],
+                               vol=jnp.where(lay["real"], state.vol[src], 0.0))
+        vec, mat = Spec(None, AXIS), Spec(None, None, AXIS)
+        spec = state.replace(x=vec, v=vec, C=mat, F=mat, vol=Spec(AXIS),
+                             clamp=ClampCount(Spec(), Spec()))
+
+        def local(params, s, body, real):
+            sub = partial(self._substep, body=body, share=share, real=real)
+            if self.checkpoint_substeps:
+                sub = jax.checkpoint(sub, prevent_cse=False)
+            return jax.lax.scan(lambda c, _: (sub(params, c), None), s, None,
+                                length=self.n_sub)[0]
+
+        out = jax.shard_map(local, mesh=lay["mesh"],
+                            in_specs=(Spec(), spec, Spec(AXIS), Spec(AXIS)),
+                            out_specs=spec)(params, padded, lay["body"], lay["real"])
+        return out.replace(x=out.x[:, slot], v=out.v[:, slot], C=out.C[..., slot],
+                           F=out.F[..., slot], vol=state.vol)
 
     def observe(self, state: MPMState) -> ParticleFrame:
         """Positions (N, 2) m, velocities (N, 2) m/s, no overflow (the MPM never overflows)
