@@ -386,6 +386,7 @@ def measure_size(run: protocol.Run, ti, cells: int, args) -> tuple[dict, bool]:
             f"{k} diffgns {a[k]:.5g} taichi {b[k]:.5g} (rel {r[k]:.1e})" for k in STAT_KEYS)
             + f" -> {'agree' if row['agree'] else 'DISAGREE: ' + ', '.join(row['failed'])}")
     row = {"cells_across": cells, "n_particles": n, "grid_shape": list(scene.grid_shape),
+           "diffgns_devices": len(sims["diffgns"].sim.devices or [0]),
            "dx_m": scene.dx, "substep_dt_s": scene.substep_dt, "substeps_per_frame": n_sub,
            "material": sims["taichi"].mat, "compile": first,
            "physics_check": {"tolerance_rel": args.tol, "statistics": list(STAT_KEYS),
@@ -459,7 +460,8 @@ def main(argv=None):
         "taichi_config": ti_config,
         "diffgns_config": {"path": "MPM(scene, dtype=float32) + rollout_jit(n_frames="
                                    f"{seg}) (lax.scan of substeps under jax.jit)",
-                           "jax": jax.__version__},
+                           "jax": jax.__version__,
+                           "devices": [r["diffgns_devices"] for r in sizes]},
         "sizes": sizes, "total_wall_s": total.wall_s, "total_cpu_s": total.cpu_s,
     }
     ratios = {str(r["n_particles"]): r["ratio_diffgns_over_taichi"] for r in sizes}
