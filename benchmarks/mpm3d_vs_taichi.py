@@ -108,7 +108,8 @@ def main(argv=None):
     n = example.n_particles
     x0 = initial_positions(n)
     sims = {"taichi": example,
-            "diffgns": DiffgnsJFluid(dim=3, n_grid=args.n_grid, dt=EXAMPLE_ROWS[args.n_grid])}
+            "diffgns": DiffgnsJFluid(dim=3, n_grid=args.n_grid, dt=EXAMPLE_ROWS[args.n_grid],
+                                     n_particles=n)}
     first, check, res, total, agree = compare(run, args, sims, sims, x0, n_particles=n)
     payload = {
         "problem": {"source": "taichi examples/simulation/mpm3d.py", "dim": 3,

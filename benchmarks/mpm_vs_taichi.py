@@ -207,7 +207,8 @@ class DiffgnsJFluid:
     2 or 3, component-major, scanned + jitted (``n_grid`` nodes per axis, time step ``dt``,
     particle volume ``(dx/2)^2`` as both Taichi examples write it, in 3D too)."""
 
-    def __init__(self, dim: int = 2, n_grid: int = N_GRID, dt: float = DT):
+    def __init__(self, dim: int = 2, n_grid: int = N_GRID, dt: float = DT,
+                 n_particles: int = N_PARTICLES):
         import jax
         import jax.numpy as jnp
         from jax.sharding import Mesh
@@ -254,10 +255,12 @@ class DiffgnsJFluid:
             J = J * (1.0 + dt * sum(C[a, a] for a in range(dim)))
             return (x, v, C, J), None
 
-        # the library's default: the particles split over the host devices diffgns asks for
-        # (two on a 2-core machine, one when pinned to a core; diffgns.hostdevices), one
-        # psum of the grids per substep, as MPM(scene) does for N >= AUTO_MIN_PARTICLES
-        self.devices = jax.local_devices() if jax.default_backend() == "cpu" else []
+        # the library's default: the devices MPM(scene) would pick for this many particles
+        # (diffgns.hostdevices.mpm_devices: two on a 2-core CPU, one when pinned to a core),
+        # one psum of the grids per substep as in MPM._substep
+        from diffgns.hostdevices import mpm_devices
+
+        self.devices = mpm_devices("auto", n_particles, dim) or jax.local_devices()[:1]
         axis = "p" if len(self.devices) > 1 else None
 
         def scan(state):

@@ -235,6 +235,9 @@ def test_one_process_placement_round_trips_exactly():
     back = to_host(rep)
     assert np.array_equal(back["w"], tree["w"]) and back["n"] == 3
     mesh = data_mesh()
+    # one device per process by default, though this process has two host devices
+    # (tests/conftest.py): the second is the sharded MPM's, not the trainer's
+    assert len(jax.local_devices()) >= 2 and list(mesh.devices.flat) == [jax.devices()[0]]
     batch = shard_batch({"x": np.arange(4.0 * len(mesh.devices.flat)).reshape(-1, 2)},
                         NamedSharding(mesh, PartitionSpec("data")))
     assert batch["x"].shape == (2 * len(mesh.devices.flat), 2)

@@ -140,7 +140,10 @@ def test_host_device_setting_is_validated(monkeypatch):
     monkeypatch.setenv(hostdevices.ENV, "3")
     assert hostdevices.wanted() == 3
     monkeypatch.delenv(hostdevices.ENV)
-    assert 1 <= hostdevices.wanted() <= hostdevices.DEFAULT_DEVICES
+    for cores, want in (({0}, 1), ({0, 1}, 2), ({0, 1, 2, 3}, 2)):  # pinned, 2, 4 cores
+        monkeypatch.setattr(hostdevices.os, "sched_getaffinity", lambda _, c=cores: c,
+                            raising=False)
+        assert hostdevices.wanted() == want
     assert hostdevices.request() is False  # JAX runs already: nothing changes
 
 

@@ -175,9 +175,10 @@ class MPM:
         tau, F = self.stress(params, state)
         return jnp.moveaxis(tau / la.det(F), -1, 0)
 
-    def mass(self, params: MPMParams, state: MPMState) -> jax.Array:
-        """(N,) particle masses, kg."""
-        return params.rho[self.body] * state.vol
+    def mass(self, params: MPMParams, state: MPMState, body=None) -> jax.Array:
+        """(N,) particle masses, kg (``body``: the particles' body ids, default the
+        scene's)."""
+        return params.rho[self.body if body is None else body] * state.vol
 
     def substep(self, params: MPMParams, state: MPMState) -> MPMState:
         """One explicit MLS-MPM substep of ``self.dt`` seconds (on one device; :meth:`step`
@@ -193,7 +194,7 @@ class MPM:
         dt, dx, n_nodes, d = self.dt, self.dx, self.n_nodes, self.dim
         F_trial = state.F + dt * la.matmul(state.C, state.F)
         tau, F = self.stress(params, state, F_trial, body=body, share=share)
-        mass = params.rho[body] * state.vol
+        mass = self.mass(params, state, body)
         X = (state.x - jnp.asarray(self.origin, state.x.dtype)[:, None]) / dx
         idx, w, dpos = stencil(X, self.grid_shape)
         affine = mass * state.C - (dt * 4.0 / dx**2) * state.vol * tau
