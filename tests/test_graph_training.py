@@ -76,6 +76,30 @@ def test_target_is_corrected_for_input_noise_exactly_once():
     assert float(loss) == pytest.approx(float(expect), rel=1e-4)
 
 
+def test_huber_loss_is_the_mse_inside_delta_and_linear_beyond():
+    trajs = synthetic(1)
+    gns = small_gns(trajs)
+    w, t = trajs[0].positions[:7], trajs[0]
+    zero = jax.tree.map(jnp.zeros_like, _init(gns, trajs))
+    nbrs = gns.allocate(w[5])
+    key = jax.random.PRNGKey(3)
+    args = (gns, zero, w, t.particle_type, t.material, nbrs, key, 0, 0.0, None)
+    mse = float(window_loss(*args)[0])
+    # the zero network's error is the noise-corrected normalised target
+    clean = jnp.swapaxes(w[:6], 0, 1)
+    n = random_walk_noise(key, clean, gns.config.noise_std, t.particle_type)
+    e = jnp.abs(gns.normalizer.acceleration.normalize(
+        (w[6] + n[:, -1]) - 2 * (clean[:, -1] + n[:, -1]) + (clean[:, -2] + n[:, -2])))
+    assert float(jnp.mean(jnp.sum(e**2, -1))) == pytest.approx(mse, rel=1e-4)
+    assert float(window_loss(*args, huber_delta=1e3)[0]) == pytest.approx(mse, rel=1e-4)
+    d = 0.5 * float(jnp.min(e))  # every component beyond delta: 2 delta |e| - delta^2
+    expect = float(jnp.mean(jnp.sum(2 * d * e - d**2, -1)))
+    assert float(window_loss(*args, huber_delta=d)[0]) == pytest.approx(expect, rel=1e-4)
+    assert expect < mse
+    with pytest.raises(ValueError, match="huber_delta"):
+        TrainConfig(huber_delta=-1.0)
+
+
 def test_push_forward_target_corrects_velocity_not_position():
     trajs = synthetic(1)
     w = trajs[0].positions[:9]  # history 5, 2 pushed frames, 1 target frame

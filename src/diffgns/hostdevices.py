@@ -90,26 +90,7 @@ def request() -> bool:
     return True
 
 
-#: material effects whose stress calls LAPACK in 3D (the batched 3x3 SVD of
-#: :func:`diffgns.mpm.linalg.svd3`): on two host devices that call starves the thread pool
-#: the devices share while the other device waits in the grid sum, and the frame deadlocks
-#: (seen at 2,352 particles, 3D sand and corotated elastic, jaxlib 0.10.2); 3D scenes with
-#: them run on one device
-LAPACK_EFFECTS_3D = frozenset({"sand", "elastic_corotated"})
-
-
-def shardable(dim: int, effects: Any) -> str | None:
-    """None if a scene of dimension ``dim`` with material ``effects`` may run sharded, else
-    the reason it may not."""
-    bad = sorted(LAPACK_EFFECTS_3D & set(effects)) if dim == 3 else []
-    if bad:
-        return (f"the 3D stress of {' and '.join(bad)} calls LAPACK's batched SVD, which "
-                "deadlocks two host devices sharing one thread pool")
-    return None
-
-
-def mpm_devices(devices: Any, n_particles: int, dim: int = 2, effects: Any = ()
-                ) -> list[Any] | None:
+def mpm_devices(devices: Any, n_particles: int) -> list[Any] | None:
     """The devices an MPM of ``n_particles`` shards over, or None for one device.
 
     Args:
@@ -118,40 +99,37 @@ def mpm_devices(devices: Any, n_particles: int, dim: int = 2, effects: Any = ()
             (one device), an integer ``k >= 2`` (the first ``k`` local devices of the
             default backend), or a sequence of devices.
         n_particles: particles of the scene.
-        dim, effects: the scene's dimension and material effects (:func:`shardable`):
-            ``"auto"`` keeps a scene that may not run sharded on one device.
+
+    Every scene may run sharded, 2D or 3D, any material: the stress has no library call
+    (the 3D SVD is :func:`diffgns.mpm.linalg.svd3`'s Jacobi rotations; LAPACK's batched
+    SVD, used before, deadlocked two host devices sharing one thread pool).
 
     Raises:
-        InputError: for a count that is not an integer >= 1, more devices than exist, or
-            several devices for a scene that may not run sharded.
+        InputError: for a count that is not an integer >= 1 or more devices than exist.
     """
     import jax
 
     if devices is None:
         return None
-    why_not = shardable(dim, effects)
     if isinstance(devices, str):
         if devices != "auto":
             raise InputError("devices", f"{devices!r} is not a device choice",
                              "give 'auto', an integer >= 1 or a list of jax devices")
         local = jax.local_devices()
         if (jax.default_backend() != "cpu" or len(local) < 2
-                or n_particles < AUTO_MIN_PARTICLES or why_not):
+                or n_particles < AUTO_MIN_PARTICLES):
             return None
         return list(local)
     if isinstance(devices, Sequence):
         devs = list(devices)
         if not devs:
             raise InputError("devices", "an empty list", "give at least one device")
-        if len(devs) > 1:
-            _refuse(why_not, len(devs))
         return devs if len(devs) > 1 else None
     if isinstance(devices, bool) or not isinstance(devices, int) or devices < 1:
         raise InputError("devices", f"{devices!r} is not a device count",
                          "give 'auto', an integer >= 1 or a list of jax devices")
     if devices == 1:
         return None
-    _refuse(why_not, devices)
     local = jax.local_devices()
     if devices > len(local):
         raise InputError("devices", f"{devices} devices asked for, this process has "
@@ -159,9 +137,3 @@ def mpm_devices(devices: Any, n_particles: int, dim: int = 2, effects: Any = ()
                          f"on CPU set {ENV}={devices} before diffgns (and JAX) start, or "
                          "ask for fewer")
     return list(local[:devices])
-
-
-def _refuse(why_not: str | None, n: int) -> None:
-    if why_not:
-        raise InputError("devices", f"{n} devices asked for, but {why_not}",
-                         "run this scene on one device (devices=1, what 'auto' picks)")

@@ -49,8 +49,8 @@ def _train(args) -> int:
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
                        push_forward=args.push_forward, momentum_weight=args.momentum_weight,
-                       seed=args.seed, validate_every=args.validate_every,
-                       checkpoint_every=args.checkpoint_every,
+                       huber_delta=args.huber_delta, seed=args.seed,
+                       validate_every=args.validate_every, checkpoint_every=args.checkpoint_every,
                        steps_per_call=args.steps_per_call or TrainConfig.steps_per_call)
     gns_kw = dict(radius=args.radius, latent=args.latent, mp_steps=args.mp_steps,
                   mlp_layers=args.mlp_layers, noise_std=args.noise_std,
@@ -174,6 +174,9 @@ def register(sub) -> None:
     t.add_argument("--momentum-weight", type=non_negative, default=0.0,
                    help="particles: weight of the momentum-conservation loss, "
                    "dimensionless (default 0)")
+    t.add_argument("--huber-delta", type=non_negative, default=0.0,
+                   help="particles: Huber loss on the normalised acceleration, linear beyond "
+                   "this many standard deviations per component; 0 = MSE (default 0)")
     t.add_argument("--seed", type=int, default=0, help="random seed, integer (default 0)")
     t.add_argument("--validate-every", type=count, default=2000,
                    help="steps between validation rollouts, count (default 2000)")

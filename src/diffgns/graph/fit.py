@@ -83,6 +83,9 @@ class TrainConfig:
         momentum_weight: GNS only: weight of the soft momentum-balance penalty: the squared
             error of the mean predicted acceleration (the total momentum change of the system
             per frame, equal masses) against the data's. 0 disables it.
+        huber_delta: GNS only: 0 for the MSE of the normalised acceleration; > 0 for the
+            Huber loss, linear beyond this many standard deviations per component
+            (:func:`diffgns.graph.training.window_loss`).
         seed: seed of every random draw (:func:`step_rng`).
         log_every, validate_every, checkpoint_every: periods in steps of :func:`fit`.
         steps_per_call: optimiser steps per device call when the network provides
@@ -100,6 +103,7 @@ class TrainConfig:
     lr_decay_steps: int = 20000
     push_forward: int = 0
     momentum_weight: float = 0.0
+    huber_delta: float = 0.0
     seed: int = 0
     log_every: int = 50
     validate_every: int = 2000
@@ -107,6 +111,8 @@ class TrainConfig:
     steps_per_call: int = 4
 
     def __post_init__(self):
+        if not self.huber_delta >= 0:
+            raise ValueError(f"huber_delta must be >= 0, got {self.huber_delta}")
         if self.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be >= 1, got {self.steps_per_call}")
 

@@ -1,7 +1,9 @@
 """GNS training step: noisy one-step loss, push-forward, data-parallel optimiser step.
 
-The loss is the MSE of the normalised acceleration over non-kinematic particles, with
-random-walk input noise and the target corrected for it. Batches are split over all
+The loss is the MSE of the normalised acceleration over non-kinematic particles (or, with
+``TrainConfig.huber_delta > 0``, its Huber version: quadratic up to ``delta`` standard
+deviations per component, linear beyond), with random-walk input noise and the target
+corrected for it. Batches are split over all
 devices of the run with ``jax.sharding`` (parameters replicated, batch sharded); XLA inserts
 the gradient all-reduce. The same code runs in one process and in several
 (:mod:`diffgns.distributed`): every process draws the same global batch from (seed, step)
@@ -57,9 +59,18 @@ def pushed_target(window, hist, unroll: int):
 
 
 def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, unroll: int,
-                momentum_weight: float, geometry: Geometry | None = None):
+                momentum_weight: float, geometry: Geometry | None = None,
+                huber_delta: float = 0.0):
     """Loss of one window (L, N, d) of positions, L = history + 2 + unroll, in the walls and
-    obstacles ``geometry`` (default: the GNS's box, no obstacle)."""
+    obstacles ``geometry`` (default: the GNS's box, no obstacle).
+
+    Per particle the squared error of the normalised acceleration summed over components,
+    or with ``huber_delta > 0`` twice optax's Huber loss per component (equal to the squared
+    error below ``huber_delta`` standard deviations, linear above): impacts against walls
+    put accelerations of 20-50 standard deviations into <1% of the node-frames of the
+    granular data, which then carry 77-90% of an MSE's weight (measured on
+    data/granular_valid.h5), so a robust loss keeps slow frictional flow in the gradient.
+    Averaged over non-kinematic particles."""
     C = gns.config.history
     clean = jnp.swapaxes(window[: C + 1], 0, 1)  # (N, C+1, d)
     noise = random_walk_noise(key, clean, gns.config.noise_std, particle_type)
@@ -79,7 +90,9 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
                                        geometry)
     tgt = gns.normalizer.acceleration.normalize(target)
     w = (particle_type != KINEMATIC).astype(pred.dtype)
-    loss = jnp.sum(w * jnp.sum((pred - tgt) ** 2, -1)) / jnp.maximum(w.sum(), 1.0)
+    per = (2.0 * optax.losses.huber_loss(pred, tgt, delta=huber_delta) if huber_delta
+           else (pred - tgt) ** 2)
+    loss = jnp.sum(w * jnp.sum(per, -1)) / jnp.maximum(w.sum(), 1.0)
     if momentum_weight:
         dmean = jnp.sum(w[:, None] * (pred - tgt), 0) / jnp.maximum(w.sum(), 1.0)
         loss = loss + momentum_weight * jnp.sum(dmean**2)
@@ -108,7 +121,7 @@ class Trainer:
         keys = jax.random.split(key, B)
         f = lambda w, t, m, k, g: window_loss(self.gns, params, w, t, m, nbrs, k,
                                               self.cfg.push_forward, self.cfg.momentum_weight,
-                                              g)
+                                              g, self.cfg.huber_delta)
         geometry = None
         if "walls" in batch:  # per-window walls (B, d, 2) and obstacles (B, K, 2d)
             geometry = Geometry(batch["walls"], batch["obstacles"])

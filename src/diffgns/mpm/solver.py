@@ -102,8 +102,7 @@ class MPM:
         self.obstacle_nodes = boundaries.obstacle_nodes(
             scene.obstacles, self.grid_shape, self.origin, self.dx) if scene.obstacles else {}
         self.share = Share(self.groups, self._single_bodies(self.groups, self.body))
-        self.devices = hostdevices.mpm_devices(devices, len(self.body), self.dim,
-                                               self.groups)
+        self.devices = hostdevices.mpm_devices(devices, len(self.body))
         self._layout = None if self.devices is None else self._shard_layout(len(self.devices))
 
     # ------------------------------------------------------------ construction
