@@ -260,7 +260,7 @@ class DiffgnsJFluid:
         # one psum of the grids per substep as in MPM._substep
         from diffgns.hostdevices import mpm_devices
 
-        self.devices = mpm_devices("auto", n_particles) or jax.local_devices()[:1]
+        self.devices = mpm_devices("auto", n_particles, dim) or jax.local_devices()[:1]
         axis = "p" if len(self.devices) > 1 else None
 
         def scan(state):

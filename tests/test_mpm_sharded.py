@@ -119,6 +119,11 @@ def test_auto_devices_follow_the_particle_count(monkeypatch):
     monkeypatch.setattr(hostdevices, "AUTO_MIN_PARTICLES", 100)
     sim = MPM(column_scene(1.0, cells_across=7))
     assert sim.devices == jax.local_devices()
+    # 3D has its own, higher threshold (a 3D frame needs more particles to pay)
+    sand3d = column_scene(1.0, cells_across=4, dim=3)  # 1,664 particles
+    assert MPM(sand3d).devices is None
+    monkeypatch.setattr(hostdevices, "AUTO_MIN_PARTICLES_3D", 1000)
+    assert MPM(sand3d).devices == jax.local_devices()
 
 
 def test_device_choices_rejected_with_a_message():
@@ -152,7 +157,7 @@ def test_3d_sand_shards_and_matches_one_device(monkeypatch):
     the sharded frame at 2,352 particles) runs sharded above that size and agrees with one
     device; so do 3D corotated elastic bodies and fluids."""
     two_devices()
-    monkeypatch.setattr(hostdevices, "AUTO_MIN_PARTICLES", 100)
+    monkeypatch.setattr(hostdevices, "AUTO_MIN_PARTICLES_3D", 100)
     sand = column_scene(1.0, cells_across=6, dim=3)  # 5,376 particles
     assert sand.n_particles > 2352
     from diffgns.scene.shapes import Box

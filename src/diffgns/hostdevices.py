@@ -37,6 +37,9 @@ DEFAULT_DEVICES = 2
 #: ``MPM(devices="auto")`` shards scenes with at least this many particles (below it the
 #: per-substep grid sum costs more than the scatter it splits; docs/performance.md)
 AUTO_MIN_PARTICLES = 4096
+#: the same in 3D: a 3D sand frame on two devices was 0.91x one device's speed at 12,992
+#: particles and 1.37x at 43,296 (benchmarks/svd3_lever.py, 2026-12-04)
+AUTO_MIN_PARTICLES_3D = 32768
 
 
 def wanted() -> int:
@@ -90,15 +93,16 @@ def request() -> bool:
     return True
 
 
-def mpm_devices(devices: Any, n_particles: int) -> list[Any] | None:
+def mpm_devices(devices: Any, n_particles: int, dim: int = 2) -> list[Any] | None:
     """The devices an MPM of ``n_particles`` shards over, or None for one device.
 
     Args:
         devices: ``"auto"`` (all local CPU devices when the default backend is the CPU, there
-            are at least two and ``n_particles >= AUTO_MIN_PARTICLES``), ``None`` or ``1``
+            are at least two and ``n_particles >= AUTO_MIN_PARTICLES``, in 3D
+            :data:`AUTO_MIN_PARTICLES_3D`), ``None`` or ``1``
             (one device), an integer ``k >= 2`` (the first ``k`` local devices of the
             default backend), or a sequence of devices.
-        n_particles: particles of the scene.
+        n_particles: particles of the scene. dim: its dimension (2 or 3).
 
     Every scene may run sharded, 2D or 3D, any material: the stress has no library call
     (the 3D SVD is :func:`diffgns.mpm.linalg.svd3`'s Jacobi rotations; LAPACK's batched
@@ -117,7 +121,7 @@ def mpm_devices(devices: Any, n_particles: int) -> list[Any] | None:
                              "give 'auto', an integer >= 1 or a list of jax devices")
         local = jax.local_devices()
         if (jax.default_backend() != "cpu" or len(local) < 2
-                or n_particles < AUTO_MIN_PARTICLES):
+                or n_particles < (AUTO_MIN_PARTICLES_3D if dim == 3 else AUTO_MIN_PARTICLES)):
             return None
         return list(local)
     if isinstance(devices, Sequence):

@@ -74,7 +74,8 @@ class MPM:
             ``runs/ab_old_new.py``), so it is off by default.
         devices: host devices a frame is sharded over: ``"auto"`` (default: every local CPU
             device when the backend is the CPU and the scene has at least
-            :data:`diffgns.hostdevices.AUTO_MIN_PARTICLES` particles), ``1`` or None (one
+            :data:`diffgns.hostdevices.AUTO_MIN_PARTICLES` particles, 3D
+            :data:`~diffgns.hostdevices.AUTO_MIN_PARTICLES_3D`), ``1`` or None (one
             device), an integer, or a list of jax devices
             (:func:`diffgns.hostdevices.mpm_devices`). Results agree with one device to
             float round-off (the grid is summed in another order).
@@ -102,7 +103,7 @@ class MPM:
         self.obstacle_nodes = boundaries.obstacle_nodes(
             scene.obstacles, self.grid_shape, self.origin, self.dx) if scene.obstacles else {}
         self.share = Share(self.groups, self._single_bodies(self.groups, self.body))
-        self.devices = hostdevices.mpm_devices(devices, len(self.body))
+        self.devices = hostdevices.mpm_devices(devices, len(self.body), self.dim)
         self._layout = None if self.devices is None else self._shard_layout(len(self.devices))
 
     # ------------------------------------------------------------ construction
