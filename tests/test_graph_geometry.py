@@ -286,3 +286,28 @@ def test_training_on_two_boxes_with_families_obstacles_and_padding(tmp_path, mon
     assert out["table"]["squares"]["cases"] == 3 and out["table"]["all"]["cases"] == 4
     assert [r["family"] for r in out["rows"]] == ["squares", "squares", "obstacles", "squares"]
     assert all(r["finite"] and r["inside_domain"] for r in out["rows"])
+
+
+def test_a_model_without_obstacle_inputs_starts_one_with_them(tmp_path):
+    """Fine-tuning a model without obstacle inputs into one with them (the general GNS from
+    a column model): the widened network's rollout next to an obstacle equals the original
+    model's rollout, which ignores obstacles; its box may differ (walls are inputs)."""
+    from diffgns.graph.train_loop import _initial_model, save_model, with_obstacle_inputs
+
+    plain = _gns()
+    h = _history()
+    params = _params(plain, h)
+    save_model(tmp_path / "plain", plain, params, {})
+    wide_gns = _gns(use_obstacles=True, bounds=((0.0, 1.5), (0.0, 0.5)))
+    gns2, wide = _initial_model(tmp_path / "plain", wide_gns)
+    assert gns2.config.use_obstacles
+    for u, v in zip(jax.tree.leaves(gns2.normalizer), jax.tree.leaves(plain.normalizer)):
+        np.testing.assert_allclose(np.asarray(u), np.asarray(v))  # the model's normaliser
+    obstacle = gns2.geometry([[0.12, 0.0, 0.2, 0.08]], bounds=BOX)
+    assert obstacle.obstacles.shape == (1, 4)
+    a = _rollout(plain, params, h, None)
+    b = _rollout(gns2.for_box(BOX), wide, h, obstacle)
+    np.testing.assert_allclose(b, a, atol=1e-6)
+    assert np.abs(a[-1] - a[0]).max() > 1e-4  # it moved
+    with pytest.raises(ValueError, match="already has obstacle inputs"):
+        with_obstacle_inputs(wide, gns2.config)

@@ -148,19 +148,43 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
 
 def _initial_model(path, gns: GNS):
     """(GNS with the model's normaliser, its params) from ``path``; the config must match
-    except for the training noise ``noise_std`` and the neighbour-list head-room
-    ``capacity_multiplier`` (see :func:`_network_difference`; the model's normaliser, which
-    folded in its own noise, is kept; the requested config is used)."""
+    except for the training noise ``noise_std``, the neighbour-list head-room
+    ``capacity_multiplier`` and the cell-list extent ``bounds`` (see
+    :func:`_network_difference`; the model's normaliser, which folded in its own noise, is
+    kept; the requested config is used). A model without obstacle inputs may start one with
+    them (:func:`with_obstacle_inputs`): it then predicts what the model did, obstacles
+    ignored, until training teaches it otherwise."""
     dim = len(json.loads((_gns_folder(path) / "config.json").read_text())["gns"]["bounds"])
     if dim != gns.config.dim:  # before loading: refused at once
         raise InputError("--init-from", f"model {path} is {dim}D but the training data are "
                          f"{gns.config.dim}D", "fine-tune a model of the data's dimension, "
                          "or train from scratch")
     base, params, _ = load_model(path)
-    if diff := _network_difference(base.config, gns.config):
+    diff = _network_difference(base.config, gns.config)
+    if diff.get("use_obstacles") == (False, True):
+        params = with_obstacle_inputs(params, base.config)
+        del diff["use_obstacles"]
+    if diff:
         raise ValueError(f"--init-from model {path} has a different configuration: "
                          f"(model, requested) = {diff}")
     return GNS(gns.config, base.normalizer, gns.frame_dt), params
+
+
+def with_obstacle_inputs(params, config: GNSConfig):
+    """The parameters of a model without obstacle inputs (``config.use_obstacles`` False),
+    widened for the ``1 + d`` obstacle columns of :func:`diffgns.graph.features.node_features`
+    (after the wall distances): zero rows in the node encoder's first kernel, so that the
+    widened network computes exactly what the model did whatever the obstacle features."""
+    if config.use_obstacles:
+        raise ValueError("with_obstacle_inputs: the model already has obstacle inputs")
+    d = config.dim
+    at = d * config.history + 2 * d  # velocity history, then wall distances
+    layer = params["params"]["node_encoder"]["hidden_0"]
+    k = layer["kernel"]
+    wide = jnp.concatenate([k[:at], jnp.zeros((1 + d, k.shape[1]), k.dtype), k[at:]])
+    return {**params, "params": {
+        **params["params"], "node_encoder": {**params["params"]["node_encoder"],
+                                             "hidden_0": {**layer, "kernel": wide}}}}
 
 
 def _gns_folder(p) -> Path:
@@ -177,10 +201,12 @@ def _gns_folder(p) -> Path:
 
 def _network_difference(a: GNSConfig, b: GNSConfig) -> dict:
     """{field: (a's, b's)} of the config fields in which a and b differ, ignoring the training
-    noise ``noise_std`` and the neighbour-list head-room ``capacity_multiplier`` (empty when
-    they describe the same network)."""
+    noise ``noise_std``, the neighbour-list head-room ``capacity_multiplier`` and the
+    neighbour list's extent ``bounds`` (the walls are inputs, :mod:`diffgns.graph.geometry`;
+    no weight depends on the box) (empty when they describe the same network)."""
     return {k: (getattr(a, k), getattr(b, k)) for k in dataclasses.asdict(a)
-            if k not in ("noise_std", "capacity_multiplier") and getattr(a, k) != getattr(b, k)}
+            if k not in ("noise_std", "capacity_multiplier", "bounds")
+            and getattr(a, k) != getattr(b, k)}
 
 
 def _union_bounds(trajs):
