@@ -61,36 +61,33 @@ def _init(gns, trajs):
                                                     t.particle_type, t.material))
 
 
-def test_target_is_corrected_for_input_noise_exactly_once():
+def _zero_network_window():
+    """(window_loss arguments of a zero network on one 7-frame window, the normalised
+    noise-corrected target (N, 2): the zero network's error)."""
     trajs = synthetic(1)
     gns = small_gns(trajs)
     w, t = trajs[0].positions[:7], trajs[0]
     zero = jax.tree.map(jnp.zeros_like, _init(gns, trajs))
     nbrs = gns.allocate(w[5])
     key = jax.random.PRNGKey(3)
-    loss, _ = window_loss(gns, zero, w, t.particle_type, t.material, nbrs, key, 0, 0.0)
     clean = jnp.swapaxes(w[:6], 0, 1)
     n = random_walk_noise(key, clean, gns.config.noise_std, t.particle_type)
     target = (w[6] + n[:, -1]) - 2 * (clean[:, -1] + n[:, -1]) + (clean[:, -2] + n[:, -2])
-    expect = jnp.mean(jnp.sum(gns.normalizer.acceleration.normalize(target) ** 2, -1))
+    args = (gns, zero, w, t.particle_type, t.material, nbrs, key, 0, 0.0, None)
+    return args, gns.normalizer.acceleration.normalize(target)
+
+
+def test_target_is_corrected_for_input_noise_exactly_once():
+    args, target = _zero_network_window()
+    loss, _ = window_loss(*args)
+    expect = jnp.mean(jnp.sum(target**2, -1))
     assert float(loss) == pytest.approx(float(expect), rel=1e-4)
 
 
 def test_huber_loss_is_the_mse_inside_delta_and_linear_beyond():
-    trajs = synthetic(1)
-    gns = small_gns(trajs)
-    w, t = trajs[0].positions[:7], trajs[0]
-    zero = jax.tree.map(jnp.zeros_like, _init(gns, trajs))
-    nbrs = gns.allocate(w[5])
-    key = jax.random.PRNGKey(3)
-    args = (gns, zero, w, t.particle_type, t.material, nbrs, key, 0, 0.0, None)
+    args, target = _zero_network_window()
     mse = float(window_loss(*args)[0])
-    # the zero network's error is the noise-corrected normalised target
-    clean = jnp.swapaxes(w[:6], 0, 1)
-    n = random_walk_noise(key, clean, gns.config.noise_std, t.particle_type)
-    e = jnp.abs(gns.normalizer.acceleration.normalize(
-        (w[6] + n[:, -1]) - 2 * (clean[:, -1] + n[:, -1]) + (clean[:, -2] + n[:, -2])))
-    assert float(jnp.mean(jnp.sum(e**2, -1))) == pytest.approx(mse, rel=1e-4)
+    e = jnp.abs(target)
     assert float(window_loss(*args, huber_delta=1e3)[0]) == pytest.approx(mse, rel=1e-4)
     d = 0.5 * float(jnp.min(e))  # every component beyond delta: 2 delta |e| - delta^2
     expect = float(jnp.mean(jnp.sum(2 * d * e - d**2, -1)))
