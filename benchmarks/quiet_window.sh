@@ -47,3 +47,4 @@ run scaling python benchmarks/scaling.py --out scaling_steal.json --wait-quiet 6
 # run inverse_gns_memory python benchmarks/inverse_gns_memory.py --out inverse_gns_memory_rounds.json --wait-quiet 600
 run mpm3d_vs_taichi python benchmarks/mpm3d_vs_taichi.py --repeats 7 --threads both --wait-quiet 600
 run mpm_levers python benchmarks/mpm_levers.py --threads 2 --out mpm_levers.json --wait-quiet 600
+run svd3_lever python benchmarks/svd3_lever.py --threads both --wait-quiet 600
