@@ -37,8 +37,8 @@ DEFAULT_DEVICES = 2
 #: ``MPM(devices="auto")`` shards scenes with at least this many particles (below it the
 #: per-substep grid sum costs more than the scatter it splits; docs/performance.md)
 AUTO_MIN_PARTICLES = 4096
-#: the same in 3D: a 3D sand frame on two devices was 0.91x one device's speed at 12,992
-#: particles and 1.37x at 43,296 (benchmarks/svd3_lever.py, 2026-12-04)
+#: the same in 3D: a 3D sand frame on two devices was 0.92x one device's speed at 12,992
+#: particles and 1.50x at 43,296 (benchmarks/svd3_lever.py, 2026-12-04)
 AUTO_MIN_PARTICLES_3D = 32768
 
 
