@@ -13,11 +13,13 @@ moving, yielding column), as in ``benchmarks/mpm_profile.py``. Three levers, eac
 current solver on the same state, in interleaved rounds (median wall and CPU time, the
 compile timed apart, ``block_until_ready`` before the clock stops), outputs compared:
 
-1. **Two host devices (the library's sharded MPM).** In a worker process with two CPU
-   devices (``jax_num_cpu_devices=2``, set before the backend starts): one frame of
-   ``MPM(scene, devices=2)`` (particles split over the devices with ``jax.shard_map``,
-   each device scattering its share into a full grid, one ``psum`` of the grids per
-   substep; :mod:`diffgns.mpm.solver`) against one frame of ``MPM(scene, devices=1)``, at
+1. **Two host devices (the library's sharded MPM) and the particle order.** In a worker
+   process with two CPU devices (``jax_num_cpu_devices=2``, set before the backend starts):
+   one frame of ``MPM(scene, devices=2)`` (particles split over the devices with
+   ``jax.shard_map``, each device scattering its share into a full grid, one ``psum`` of the
+   grids per substep; :mod:`diffgns.mpm.solver`) against one frame of ``MPM(scene,
+   devices=1)``, each also with ``particle_order="given"`` (the scene's order) against the
+   default (shuffled within blocks in 2D on the CPU), at
    the sizes of ``--shard-cells`` (1,024 to 32,400 particles: where the sharded frame
    starts to pay sets :data:`diffgns.hostdevices.AUTO_MIN_PARTICLES`). The ``psum`` adds
    in another order than the one scatter: max |x| and |v| differences after the frame are
@@ -140,21 +142,29 @@ def shard_size(cells: int, repeats: int, state_dir: str | None) -> dict:
     if len(devices) < 2:
         raise SystemExit(f"mpm_levers worker: 2 host devices needed, got {len(devices)}")
     scene, _, params, state = collapsed(cells, state_dir)
-    one, two = MPM(scene, devices=1), MPM(scene, devices=2)
-    f1, c1 = aot(one.step, params, state)
-    f2, c2 = aot(two.step, params, state)
-    res = interleave({"one_device": lambda: f1(params, state),
-                      "two_devices": lambda: f2(params, state)}, repeats)
+    sims = {"one_device": MPM(scene, devices=1), "two_devices": MPM(scene, devices=2),
+            "one_device_given_order": MPM(scene, devices=1, particle_order="given"),
+            "two_devices_given_order": MPM(scene, devices=2, particle_order="given")}
+    compiled = {k: aot(sim.step, params, state) for k, sim in sims.items()}
+    res = interleave({k: (lambda f=f: f(params, state)) for k, (f, _) in compiled.items()},
+                     repeats)
     a, b = res.outputs["one_device"], res.outputs["two_devices"]
     n_sub = int(scene.substeps)
     rows = {k: timing_row(res, k, n_sub) for k in res.names}
-    rows["one_device"]["compile_s"], rows["two_devices"]["compile_s"] = c1, c2
+    for k, (_, c) in compiled.items():
+        rows[k]["compile_s"] = c
+        rows[k]["max_abs_diff_x_m"] = max_diff(res.outputs[k].x, a.x)
     return {
         "cells_across": cells, "n_particles": scene.n_particles,
         "grid_shape": list(scene.grid_shape), "substeps_per_call": n_sub,
         "devices": [str(d) for d in devices], "timing": rows,
+        "shuffled_order_default": bool(sims["one_device"].shuffled),
         "speedup_two_over_one": 1.0 / res.ratio("two_devices", "one_device"),
         "cpu_ratio_two_over_one": res.ratio("two_devices", "one_device", cpu=True),
+        "speedup_shuffled_over_given_one_device":
+            1.0 / res.ratio("one_device", "one_device_given_order"),
+        "speedup_shuffled_over_given_two_devices":
+            1.0 / res.ratio("two_devices", "two_devices_given_order"),
         "max_abs_diff_frame": {"x_m": max_diff(a.x, b.x), "v_m_s": max_diff(a.v, b.v)},
         "clamp_moved_equal": int(a.clamp.moved) == int(b.clamp.moved),
         "rounds": res.to_json()["rounds"],
@@ -187,6 +197,11 @@ def report_shard(run: protocol.Run, r: dict) -> None:
               f"(CPU {w['cpu_us_per_substep']:.0f}): speed-up {r['speedup_two_over_one']:.2f}x; "
               f"compile {o['compile_s']:.1f} / {w['compile_s']:.1f} s; max |dx| "
               f"{d['x_m']:.1e} m, |dv| {d['v_m_s']:.1e} m/s after a frame")
+    run.print("    shuffled order / scene order: "
+              f"x{r['speedup_shuffled_over_given_one_device']:.2f}"
+              f" on one device ({t['one_device_given_order']['us_per_substep']:.0f} us in the "
+              f"scene's order), x{r['speedup_shuffled_over_given_two_devices']:.2f} on two "
+              f"({t['two_devices_given_order']['us_per_substep']:.0f} us)")
 
 
 # ------------------------------------------------------------------ 2. XLA options

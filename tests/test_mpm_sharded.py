@@ -1,9 +1,12 @@
-"""The MPM sharded over two host devices (diffgns.hostdevices) against the one-device MPM.
+"""The MPM sharded over two host devices (diffgns.hostdevices) against the one-device MPM,
+and the shuffled particle order of a frame against the scene's order.
 
 The sharded frame splits every material group over the devices (padding with massless
 copies), sums the grids with a psum and unpermutes: it must give the one-device frame up to
 the grid's summation order, its gradients, its clamp counts (padding never counted), under
-jit, grad and vmap; the device choice rejects what cannot work with a message.
+jit, grad and vmap; the device choice rejects what cannot work with a message. A frame
+that runs its particles shuffled within blocks (``particle_order``, the CPU default in 2D)
+must give the frame of the scene's order up to the same round-off.
 """
 import dataclasses
 
@@ -15,6 +18,8 @@ import pytest
 from diffgns import MPM, Body, Elastic, Fluid, Rectangle, Sand, Scene, Walls, hostdevices
 from diffgns.errors import InputError
 from diffgns.interface import rollout_jit
+from diffgns.mpm import solver
+from diffgns.mpm.solver import block_permutation
 from diffgns.scene.recipes import column_scene
 
 
@@ -185,3 +190,59 @@ def test_eager_frame_of_a_sharded_mpm_runs_on_one_device(x64):
         eager = two.step(p, s)
     np.testing.assert_allclose(np.asarray(eager.x), np.asarray(jitted.x), rtol=0, atol=1e-12)
     assert "shard_map" in str(jax.make_jaxpr(two.step)(p, s))
+
+
+def test_block_permutation_shuffles_within_blocks_only():
+    perm = block_permutation(2500, 1000, np.random.default_rng(0))
+    np.testing.assert_array_equal(np.sort(perm), np.arange(2500))  # a permutation
+    for lo in (0, 1000, 2000):  # every block maps onto itself, and is shuffled
+        blk = perm[lo:lo + 1000]
+        np.testing.assert_array_equal(np.sort(blk), np.arange(lo, min(lo + 1000, 2500)))
+        assert np.mean(blk != np.arange(lo, lo + len(blk))) > 0.9
+    np.testing.assert_array_equal(block_permutation(5, 1, np.random.default_rng(0)),
+                                  np.arange(5))
+
+
+def test_particle_order_default_and_rejected_with_a_message():
+    """2D on the CPU runs shuffled by default, 3D in the scene's order (no gain measured)."""
+    assert jax.default_backend() == "cpu"
+    assert MPM(column_scene(1.0, cells_across=5)).shuffled
+    assert not MPM(column_scene(1.0, cells_across=5), particle_order="given").shuffled
+    assert not MPM(column_scene(1.0, cells_across=3, dim=3)).shuffled
+    assert MPM(column_scene(1.0, cells_across=3, dim=3), particle_order="shuffled").shuffled
+    with pytest.raises(InputError, match="particle_order: 'sorted' is not an order"):
+        MPM(column_scene(1.0, cells_across=5), particle_order="sorted")
+
+
+@pytest.mark.parametrize("devices", [1, 2])
+def test_shuffled_order_gives_the_frames_clamps_and_gradient_of_the_scene_order(
+        x64, devices, monkeypatch):
+    """Three material groups, several bodies in one group, particles pushed past a wall: the
+    shuffled frame (one device, or two with padding) equals the scene-order frame to
+    round-off, counts the same clamps, and differentiates to the same gradient. Blocks of
+    200 particles (764 in the scene), so there are several, one spanning two groups."""
+    two_devices()
+    monkeypatch.setattr(solver, "ORDER_BLOCK", 200)
+    scene = mixed_scene(v_right=0.5)
+    given = MPM(scene, devices=1, particle_order="given")
+    shuf = MPM(scene, devices=devices, particle_order="shuffled")
+    assert shuf._layout is not None and not np.array_equal(
+        shuf._layout["src"][shuf._layout["real"]], np.arange(scene.n_particles))
+    p, s = given.params(), given.init()
+    s = s.replace(x=s.x.at[0, np.array([3, 400, 700])].set(scene.domain[0][1] + 0.004))
+    (fa, sa), (fb, sb) = frames(given, p, s), frames(shuf, p, s)
+    assert float(jnp.abs(sa.x - s.x).max()) > 1e-3
+    for a, b in ((fa.positions, fb.positions), (fa.velocities, fb.velocities),
+                 (sa.C, sb.C), (sa.F, sb.F)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(fb.clamp.moved), np.asarray(fa.clamp.moved))
+    assert int(fa.clamp.moved[1]) >= 3
+
+    def runout(sim, phi):
+        q = p.replace(friction_angle=p.friction_angle.at[0].set(phi))
+        return jnp.max(rollout_jit(sim, q, s, n_frames=2)[1].x[0])
+
+    ga = jax.grad(lambda a: runout(given, a))(25.0)
+    gb = jax.grad(lambda a: runout(shuf, a))(25.0)
+    assert np.isfinite(float(ga))
+    np.testing.assert_allclose(float(gb), float(ga), rtol=1e-7, atol=1e-12)
