@@ -347,3 +347,40 @@ def test_several_steps_in_one_call_equal_single_steps_and_redo_on_overflow():
         small = {k: (v[..., :9, :] if k == "positions" else v[..., :9])
                  for k, v in batches[1].items()}
         steps_with_reallocation(tr, q, s, [batches[0], small], nb, keys[:2])
+
+
+def test_early_windows_are_drawn_weight_times_as_often():
+    """Starts in the first K frames are W times as likely as each later one: the early share
+    is K W / (K W + n - K); the default draws exactly the uniform starts of before."""
+    trajs = synthetic(1, T=107)  # 107 frames, windows of 7: 101 starts
+    n = 101
+    plain, early = WindowSampler(trajs, 5), WindowSampler(trajs, 5, early_frames=5,
+                                                          early_weight=10.0)
+    a, b = np.random.default_rng(3), np.random.default_rng(3)
+    assert [plain.draw_start(a, n) for _ in range(50)] == \
+        [int(b.integers(0, n)) for _ in range(50)]
+    rng = np.random.default_rng(0)
+    starts = np.array([early.draw_start(rng, n) for _ in range(40000)])
+    assert starts.min() == 0 and starts.max() == n - 1
+    want = 5 * 10 / (5 * 10 + n - 5)
+    assert abs(np.mean(starts < 5) - want) < 0.01
+    counts = np.bincount(starts, minlength=n)
+    assert abs(counts[:5].mean() / counts[5:].mean() - 10.0) < 1.0  # each early start 10x
+    # K beyond the trajectory: every start early, so uniform again
+    short = WindowSampler(trajs, 5, early_frames=500, early_weight=3.0)
+    s = np.array([short.draw_start(rng, n) for _ in range(20000)])
+    assert abs(np.bincount(s, minlength=n).std() / (20000 / n) - 0.1) < 0.05
+    for bad in (dict(early_frames=-1), dict(early_weight=0.0), dict(early_weight=np.inf),
+                dict(early_frames=2.5)):
+        with pytest.raises(ValueError, match="early windows"):
+            WindowSampler(trajs, 5, **bad)
+
+
+def test_early_windows_option_is_parsed_and_rejected_with_a_message():
+    from diffgns.cli.train import _early_windows
+    from diffgns.errors import InputError
+
+    assert _early_windows("5:4") == (5, 4.0) and _early_windows(None) is None
+    for bad in ("5", "0:2", "5:0", "a:b", "5:inf"):
+        with pytest.raises(InputError, match="--early-windows"):
+            _early_windows(bad)

@@ -57,7 +57,8 @@ def _train(args) -> int:
                   attention=args.attention, use_obstacles=args.obstacle_features)
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
           frame_stride=args.frame_stride, init_from=args.init_from, pad_to=args.pad_nodes,
-          family_weights=_weights(args.family_weights))
+          family_weights=_weights(args.family_weights),
+          early_windows=_early_windows(args.early_windows))
     from diffgns.distributed import is_main
 
     if is_main():
@@ -79,6 +80,23 @@ def _weights(text: str | None) -> dict | None:
         except ValueError:
             raise InputError("--family-weights", f"{item!r} is not family=weight",
                              "e.g. --family-weights squares=1,columns=2") from None
+    return out
+
+
+def _early_windows(text: str | None) -> tuple[int, float] | None:
+    """``"5:4"`` -> (5, 4.0): windows starting in the first 5 frames drawn 4 times as often."""
+    if not text:
+        return None
+    from diffgns.errors import InputError
+
+    frames, _, weight = text.partition(":")
+    try:
+        out = (int(frames), float(weight))
+    except ValueError:
+        out = (-1, 0.0)
+    if out[0] < 1 or not (out[1] > 0 and out[1] != float("inf")):
+        raise InputError("--early-windows", f"{text!r} is not FRAMES:WEIGHT",
+                         "e.g. --early-windows 5:4 (frames >= 1, weight > 0)")
     return out
 
 
@@ -192,6 +210,10 @@ def register(sub) -> None:
     t.add_argument("--family-weights", default=None, metavar="F=W,...",
                    help="particles, datasets with scene families: sampling weight per family, "
                         "e.g. squares=1,columns=2 (default equal)")
+    t.add_argument("--early-windows", default=None, metavar="FRAMES:WEIGHT",
+                   help="particles: draw the windows that start in each trajectory's first "
+                        "FRAMES (strided) frames WEIGHT times as often, e.g. 5:4 (a flow's "
+                        "release from rest)")
     t.add_argument("--obstacle-features", action="store_true",
                    help="particles: give the network the distance and normal to the nearest "
                         "box obstacle (datasets that record obstacles, e.g. --kind granular)")

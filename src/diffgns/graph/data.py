@@ -108,13 +108,25 @@ class WindowSampler:
     each with the walls and box obstacles of its trajectory (``Trajectory.bounds``,
     ``Trajectory.obstacles``), the obstacles padded to the most any trajectory has
     (:func:`diffgns.graph.geometry.parked`). The trajectories must share one dimension
-    (2D or 3D)."""
+    (2D or 3D).
+
+    ``early_frames``, ``early_weight``: the windows starting in a trajectory's first
+    ``early_frames`` (strided) frames are drawn ``early_weight`` times as often as the others
+    (a flow's release from rest is a few windows of ~100 per trajectory); 0 and 1 draw
+    starts uniformly (and exactly as before these options existed)."""
 
     trajs: list
     history: int = 5
     unroll: int = 0
+    early_frames: int = 0
+    early_weight: float = 1.0
 
     def __post_init__(self):
+        if not (isinstance(self.early_frames, int) and self.early_frames >= 0
+                and np.isfinite(self.early_weight) and self.early_weight > 0):
+            raise ValueError(f"early windows: early_frames = {self.early_frames!r} must be an "
+                             f"integer >= 0 (frames) and early_weight = {self.early_weight!r} "
+                             "a finite number > 0")
         check_one_dimension(self.trajs, "the training trajectories")
         self.max_obstacles = max([len(getattr(t, "obstacles", ())) for t in self.trajs] + [0])
         self.groups: dict[int, list[int]] = {}
@@ -144,7 +156,7 @@ class WindowSampler:
         pos, ptype, mat, walls, obs = [], [], [], [], []
         for _ in range(batch):
             t = self.trajs[members[rng.integers(len(members))]]
-            x, p, m = self.window(t, int(rng.integers(0, t.n_frames - self.length + 1)))
+            x, p, m = self.window(t, self.draw_start(rng, t.n_frames - self.length + 1))
             pos.append(x)
             ptype.append(p)
             mat.append(m)
@@ -155,6 +167,17 @@ class WindowSampler:
         return dict(positions=np.stack(pos), particle_type=np.stack(ptype),
                     material=np.stack(mat), walls=np.stack(walls).astype(dtype),
                     obstacles=np.stack(obs).astype(dtype))
+
+    def draw_start(self, rng: np.random.Generator, n_starts: int) -> int:
+        """A window start in ``[0, n_starts)``: uniform, or with the first ``early_frames``
+        starts ``early_weight`` times as likely as each later one."""
+        k = min(self.early_frames, n_starts)
+        if k == 0 or self.early_weight == 1.0:
+            return int(rng.integers(0, n_starts))
+        u = rng.random() * (k * self.early_weight + (n_starts - k))
+        early = k * self.early_weight
+        return min(int(u / self.early_weight), k - 1) if u < early else \
+            min(k + int(u - early), n_starts - 1)
 
     def window(self, t: Trajectory, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The window of ``t`` from frame ``start``: positions (L, N, d), particle_type

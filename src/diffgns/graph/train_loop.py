@@ -242,32 +242,38 @@ def _families(train_paths) -> list[str] | None:
 
 
 def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int = 1,
-                 family_weights: dict | None = None) -> WindowSampler:
+                 family_weights: dict | None = None,
+                 early_windows: tuple[int, float] | None = None) -> WindowSampler:
     """The training windows: per scene family (equal weights unless ``family_weights``),
     node counts padded up to a multiple of ``pad_to`` (fewer compiled programs), when
-    ``families`` names one per trajectory; else plain node-count groups."""
+    ``families`` names one per trajectory; else plain node-count groups. ``early_windows``
+    ``(frames, weight)``: windows starting in each trajectory's first ``frames`` (strided)
+    frames drawn ``weight`` times as often (:class:`WindowSampler`)."""
+    frames, weight = early_windows or (0, 1.0)
+    early = dict(early_frames=int(frames), early_weight=float(weight))
     if families is None:
         if pad_to > 1 or family_weights:
             raise InputError("--pad-nodes/--family-weights", "the training data records no "
                              "scene families", "use data of diffgns dataset --kind granular, "
                              "or drop these options")
-        return WindowSampler(trajs, gns.config.history, tcfg.push_forward)
+        return WindowSampler(trajs, gns.config.history, tcfg.push_forward, **early)
     if len(families) != len(trajs):
         raise ValueError(f"{len(families)} families for {len(trajs)} trajectories")
-    return FamilyWindowSampler(trajs, gns.config.history, tcfg.push_forward,
+    return FamilyWindowSampler(trajs, gns.config.history, tcfg.push_forward, **early,
                                families=families, weights=family_weights, pad_to=pad_to,
                                bounds=gns.config.bounds, radius=gns.config.radius)
 
 
 def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
           factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True,
-          init_from=None, pad_to: int = 1, family_weights: dict | None = None):
+          init_from=None, pad_to: int = 1, family_weights: dict | None = None,
+          early_windows: tuple[int, float] | None = None):
     """Train (or resume) a GNS; returns (gns, params).
 
     Datasets that record a scene family per trajectory (``diffgns dataset --kind
     granular``) are sampled per family (:func:`make_sampler`; ``pad_to``,
-    ``family_weights``); every window carries its trajectory's walls and obstacles
-    (:mod:`diffgns.graph.geometry`).
+    ``family_weights``; ``early_windows`` for any data); every window carries its
+    trajectory's walls and obstacles (:mod:`diffgns.graph.geometry`).
 
     ``init_from``: a model folder whose parameters start a fresh run (fine-tuning, e.g. with
     push-forward); its configuration must equal the one requested here, and the run keeps its
@@ -282,7 +288,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
         raise InputError("--valid", f"{valid_path} is {d}D but the training data are "
                          f"{gns.config.dim}D", f"validate on {gns.config.dim}D data")
     families = _families(train_paths)
-    sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights)
+    sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights, early_windows)
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
@@ -298,7 +304,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source, pad_to=pad_to,
-                family_weights=family_weights,
+                family_weights=family_weights, early_windows=early_windows,
                 families=None if families is None else sorted(set(families)))
     if is_main():
         (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
