@@ -29,6 +29,13 @@ fitted there on the node counts of the MPM's columns (N / 16). The GNS is only
 accurate on the columns it was trained on (0.1 m wide): above that the figures are costs, not
 validated simulations.
 
+**3D** (``--dim 3``, issue 24: the MPM's cost law and memory in 3D, up to the largest
+scene that fits): the MPM alone (there is no 3D GNS model yet) on the axisymmetric sand
+column of the 3D data (``column_scene(1, dim=3)``: radius ``c dx``, height = radius, 8
+particles per cell, so N ~ 8 pi c^3) at a fixed dx = :data:`DX_3D` (the column grows with
+N, the substep stays near the same CFL limit), 2.5 ms frames, as ``MPM(scene)`` runs it
+by default (one device below ``AUTO_MIN_PARTICLES_3D``, two above).
+
 Each (simulator, size) runs in its own worker process (clean peak RSS; one that runs out of
 memory loses only its case): the rollout is compiled ahead of time (``diffgns.memory``: compile
 time and XLA's memory analysis), a case whose XLA estimate exceeds 80% of the memory available
@@ -62,6 +69,9 @@ MEMORY_FRACTION = 0.8
 # longer or shorter than TARGET_CALL_S (CPU time of --quick runs at ~1k and ~4k on a loaded
 # machine, over the ~1.7 cores a quiet machine gives)
 MPM_S_PER_SUBSTEP = (2.0e-4, 2.5e-7)  # overhead, per particle
+MPM3D_S_PER_SUBSTEP = (5.0e-4, 1.0e-6)  # overhead, per particle (3D sand, 27-node stencil)
+DX_3D = 0.01  # m: the 3D column's cell size (the 3D training data's resolution)
+SIZES_3D = (4096, 16384, 65536, 262144, 1048576)
 GNS_S_PER_STEP = (2.0e-3, 6.0e-5)  # overhead, per node
 
 
@@ -203,6 +213,24 @@ def _mpm_case(n_target: int, geo: dict, model=None):
     return sim, sim.params(), sim.init(), sub, est, info
 
 
+def _mpm3d_case(n_target: int, geo: dict, model=None):
+    from diffgns import MPM
+    from diffgns.scene.recipes import column_scene
+
+    c = max(2, round((n_target / (8 * math.pi)) ** (1 / 3)))
+    scene = column_scene(ASPECT, width=c * DX_3D, cells_across=c, dim=3,
+                         friction_angle=FRICTION, frame_dt=2.5e-3)
+    sim = MPM(scene)
+    n, sub = scene.n_particles, scene.substeps
+    est = MPM3D_S_PER_SUBSTEP[0] + MPM3D_S_PER_SUBSTEP[1] * n
+    info = {"n_particles": n, "cells_across_radius": c, "radius_m": c * DX_3D,
+            "dx_m": scene.dx, "grid_shape": list(scene.grid_shape),
+            "domain_m": [list(d) for d in scene.domain], "frame_dt_s": scene.frame_dt,
+            "substeps_per_frame": sub, "dt_s": scene.substep_dt,
+            "devices": len(sim.devices or [None])}
+    return sim, sim.params(), sim.init(), sub, est, info
+
+
 def _gns_case(n_target: int, geo: dict, model):
     import dataclasses
 
@@ -256,8 +284,8 @@ def measure_case(kind: str, n_target: int, repeats: int) -> dict[str, Any]:
     geo = model_geometry(json.loads((model_path(MODEL) / "config.json").read_text()))
     model = load_model(MODEL) if kind == "gns" else None
     rss0 = current_rss_mb()  # after imports and loading the model
-    sim, params, state, steps_per_frame, est, res = (_mpm_case if kind == "mpm" else _gns_case)(
-        n_target, geo, model)
+    case = {"mpm": _mpm_case, "mpm3d": _mpm3d_case, "gns": _gns_case}[kind]
+    sim, params, state, steps_per_frame, est, res = case(n_target, geo, model)
     frames = frames_per_call(est, steps_per_frame)
     steps = frames * steps_per_frame
     reps = repeats if est * steps <= LONG_CALL_S else min(repeats, 3)
@@ -447,7 +475,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help=f"only {QUICK_SIZES}")
     ap.add_argument("--repeats", type=int, default=5,
                     help="steady calls per case (3 when one call exceeds ~3 s)")
-    ap.add_argument("--out", default="scaling.json")
+    ap.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                    help=f"3: the 3D MPM alone (default sizes {SIZES_3D})")
+    ap.add_argument("--out", default=None, help="default scaling.json (3D: scaling_3d.json)")
     ap.add_argument("--case", nargs=2, metavar=("SIM", "N"), help=argparse.SUPPRESS)
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -456,6 +486,9 @@ def main(argv=None):
         print(TAG + json.dumps(res, default=protocol._json_default), flush=True)
         return
     run = protocol.start(args, "scaling")
+    if args.dim == 3:
+        return main_3d(run, args)
+    args.out = args.out or "scaling.json"
     from diffgns.models import model_path
 
     info = json.loads((model_path(MODEL) / "config.json").read_text())
@@ -497,6 +530,38 @@ def main(argv=None):
     path = run.finish(args.out, payload, lambda p: plot(mpm_rows, gns_rows, laws, pairs,
                                                          cross, factor, p.with_suffix(".png")))
     run.print(f"wrote {path} (and the plot beside it)")
+
+
+def main_3d(run: protocol.Run, args) -> None:
+    """The 3D MPM's cost law and memory (see the module docstring)."""
+    sizes = sorted(set(args.sizes or SIZES_3D))
+    rows = [run_case(run, "mpm3d", n, max(3, args.repeats)) for n in sizes]
+    ok = [r for r in rows if "s_per_sim_s" in r]
+    law = fit_power_law([r["n_particles"] for r in ok], [r["s_per_sim_s"] for r in ok])
+    law_substep = fit_power_law([r["n_particles"] for r in ok], [r["s_per_step"] for r in ok])
+    head = ["N", "substeps/frame", "devices", "s/substep", "us/particle-substep", "s/sim-s",
+            "XLA MB", "RSS+ MB"]
+    lines = [" ".join(f"{h:>18}" for h in head)]
+    for r in rows:
+        if "s_per_step" not in r:
+            lines.append(f"{r.get('n_particles')!s:>18} " + (r.get("skipped")
+                                                              or r.get("failed", "?")))
+            continue
+        cells = [r["n_particles"], r["substeps_per_frame"], r["devices"], _f(r["s_per_step"]),
+                 _f(1e6 * r["s_per_step"] / r["n_particles"]), _f(r["s_per_sim_s"]),
+                 _f(r["xla_total_mb"], ".0f"), _f(r["peak_rss_delta_mb"], ".0f")]
+        lines.append(" ".join(f"{c!s:>18}" for c in cells))
+    run.print("\n".join(lines))
+    if law:
+        run.print(f"3D MPM cost law: {law['a']:.3g} N^{law['b']:.3f} s per simulated second "
+                  f"(R^2 {law['r2']:.3f}); per substep {law_substep['a']:.3g} "
+                  f"N^{law_substep['b']:.3f} s")
+    payload = {"description": "3D MPM cost per simulated second and memory (issue 24)",
+               "dx_m": DX_3D, "aspect_ratio": ASPECT, "friction_angle": FRICTION,
+               "sizes": sizes, "law_s_per_sim_s": law, "law_s_per_substep": law_substep,
+               "results": rows}
+    path = run.finish(args.out or "scaling_3d.json", payload)
+    run.print(f"wrote {path}")
 
 
 if __name__ == "__main__":
