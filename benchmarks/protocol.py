@@ -149,6 +149,8 @@ def thread_setting(threads: int, pinned: bool) -> dict[str, Any]:
     affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     return {"threads": threads, "pinned": pinned, "cpu_affinity": affinity,
             "xla_flags": os.environ.get("XLA_FLAGS"),
+            # glibc's malloc tunables (huge pages: diffgns.hugepages) change allocation costs
+            "glibc_tunables": os.environ.get("GLIBC_TUNABLES"),
             **{k: os.environ.get(k) for k in ONE_THREAD_VARS}}
 
 

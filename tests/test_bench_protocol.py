@@ -102,7 +102,7 @@ def test_json_records_validity_load_and_machine(tmp_path):
     assert p["valid"] is False and p["load_before_1_5_15"] == list(LOADED)
     assert len(p["load_after_1_5_15"]) == 3
     for key in ("date_utc", "git_commit", "command", "cpu_model", "threads", "pinned",
-                "thread_mode", "xla_flags", "OMP_NUM_THREADS", "max_load_1min"):
+                "thread_mode", "xla_flags", "glibc_tunables", "OMP_NUM_THREADS", "max_load_1min"):
         assert key in p, key
     assert p["threads"] == 2 and p["date_utc"].endswith("+00:00")
     assert "python" in doc["machine"] and "cpu_count" in doc["machine"]
