@@ -33,7 +33,6 @@ import os
 import sys
 from contextlib import nullcontext
 
-from diffgns import hugepages
 from diffgns.cli import data, evaluate, invert, train
 from diffgns.cli.checks import Parser, report_interrupt, signals_as_exceptions
 
@@ -88,8 +87,6 @@ def main(argv=None) -> int:
         args = build_parser(argv).parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2, already printed)
         return e.code if isinstance(e.code, int) else int(e.code is not None)
-    if argv is None:  # the `diffgns` process itself, before JAX starts: huge pages for
-        hugepages.reexec()  # XLA's buffers (returns unless it re-executes; diffgns.hugepages)
     out = getattr(args, "out", None)
     created = new_dirs(out) if out else []
     rc = 1
