@@ -152,7 +152,11 @@ column3d-test-data: $(VENV)/.installed-test
 # checkpoints/meshnet_halving for runs/meshnet_halving) and stops cleanly on SIGTERM (rerun
 # to resume); meshnet-eval prints the targets table. The default run is the noise-halving
 # lever; the unrolled lever: make meshnet-train MESHNET_RUN=runs/meshnet_unroll
-# MESHNET_STAGES=1000:0.003:1,20000:0.0005:4
+# MESHNET_STAGES=1000:0.003:1,20000:0.0005:4; both finished (20,000 steps). Its K = 8
+# continuation (running since 2026-12-04): make meshnet-train MESHNET_RUN=runs/meshnet_unroll8
+# MESHNET_STAGES=1000:0.003:1,20000:0.0005:4,30000:0.0005:8
+# MESHNET_NET="--latent 32 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5
+# --lr-decay-steps 20000 --checkpoint-every 100"
 MESHNET_RUN ?= runs/meshnet_halving
 MESHNET_STAGES ?= 1000:0.003:1,3000:0.0015:1,6000:0.00075:1,20000:0.0004:1
 MESHNET_CKPT = checkpoints/$(notdir $(MESHNET_RUN))
