@@ -1,6 +1,6 @@
-"""Accuracy of a trained GNS on held-out column collapses, and its cost per simulated second
-against the MPM (at its stable dt and at the dt = 1e-5 s of the published training data),
-measured in one run on this machine.
+"""Accuracy of a trained GNS on held-out column collapses (2D, or axisymmetric in 3D), and
+its cost per simulated second against the MPM (at its stable dt and at the dt = 1e-5 s of
+the published training data), measured in one run on this machine.
 
     .venv/bin/python benchmarks/gns_accuracy_speed.py --model models/gns_columns \
         --data data/columns_test.h5 --out benchmarks/results/gns_accuracy_speed.json
@@ -28,7 +28,7 @@ from diffgns.graph.data import load_trajectories
 from diffgns.graph.evaluate import reference_inputs, rollout_reference, score
 from diffgns.graph.train_loop import load_model
 from diffgns.interface import rollout_safe
-from diffgns.scene.builders import column_collapse
+from diffgns.scene.recipes import column_scene
 from diffgns.timing import interleave, time_call
 
 
@@ -68,14 +68,15 @@ def accuracy_rows(run, gns, params, refs, attrs) -> list[dict]:
 
 
 def speed_of_case(gns, params, ref, kw: dict, repeats: int, mpm5_frames: int) -> dict:
-    """Cost per simulated second of the GNS and the MPM on one case's own scene."""
-    scene = column_collapse(**kw)
+    """Cost per simulated second of the GNS and the MPM on one case's own scene
+    (``kw``: :func:`~diffgns.scene.recipes.column_scene`'s arguments, 2D or 3D)."""
+    scene = column_scene(**kw)
     n = 100
     gns_sim_s = (ref.n_frames - gns.config.history - 1) * ref.frame_dt
     mpm_sim_s = n * scene.frame_dt
     res = interleave({"gns": gns_call(gns, params, ref), "mpm": mpm_call(scene, n)}, repeats)
     tg, tm = res.summary("gns"), res.summary("mpm")
-    scene5 = column_collapse(**kw, dt=1e-5)
+    scene5 = column_scene(**kw, dt=1e-5)
     t5 = time_call(mpm_call(scene5, mpm5_frames), max(1, repeats - 2))[0]
     g = tg["median_s"] / gns_sim_s
     return dict(
@@ -111,9 +112,11 @@ def main(argv=None):
     rows = accuracy_rows(run, gns, params, refs, attrs)
     meta = json.loads(Path(args.data).with_suffix(".metadata.json").read_text())
     for row, at, ref in zip(rows, attrs, refs):
+        dim = int(meta.get("dim", 2))  # a 3D column's box follows from its runout estimate
+        box = dict(domain_length=0.8, domain_height=0.35) if dim == 2 else {}
         kw = dict(width=meta.get("width", 0.1), aspect_ratio=at["aspect_ratio"],
                   friction_angle=at["friction_angle"], cells_across=meta.get("cells_across", 8),
-                  domain_length=0.8, domain_height=0.35)
+                  dim=dim, **box)
         row.update(speed_of_case(gns, params, ref, kw, args.repeats, args.mpm_1e_5_frames))
         run.print(f"a={at['aspect_ratio']}: MPM {row['mpm_stable_s_per_sim_s']:.2f} s/sim-s "
                   f"(stable dt), {row['mpm_dt1e5_s_per_sim_s']:.2f} (dt=1e-5); GNS "
