@@ -153,7 +153,7 @@ column3d-test-data: $(VENV)/.installed-test
 # to resume); meshnet-eval prints the targets table. The default run is the noise-halving
 # lever; the unrolled lever: make meshnet-train MESHNET_RUN=runs/meshnet_unroll
 # MESHNET_STAGES=1000:0.003:1,20000:0.0005:4; both finished (20,000 steps). Its K = 8
-# continuation (running since 2026-12-04): make meshnet-train MESHNET_RUN=runs/meshnet_unroll8
+# continuation (stopped at step 28,518, evaluated: not better): make meshnet-train MESHNET_RUN=runs/meshnet_unroll8
 # MESHNET_STAGES=1000:0.003:1,20000:0.0005:4,30000:0.0005:8
 # MESHNET_NET="--latent 32 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5
 # --lr-decay-steps 20000 --checkpoint-every 100"
