@@ -292,10 +292,13 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
-    if init_from is not None and not has_checkpoint(out):
+    if init_from is not None:
+        # the model (and its normaliser) of init_from, also when resuming: the checkpoint's
+        # params were trained in that normaliser's units, not in the data's with this noise
         gns, params = _initial_model(init_from, gns)
         trainer = Trainer(gns, tcfg)
-        print(f"fine-tuning from {init_from}")
+        if not has_checkpoint(out):
+            print(f"fine-tuning from {init_from}")
     else:  # a new network (or a resumed one, whose params the checkpoint replaces)
         params = gns.init_network(jax.random.PRNGKey(tcfg.seed),
                                   (jnp.swapaxes(jnp.asarray(t0.positions[: C + 1]), 0, 1),
