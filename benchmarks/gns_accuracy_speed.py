@@ -111,9 +111,9 @@ def main(argv=None):
     refs, attrs = refs[: args.cases], attrs[: args.cases]
     rows = accuracy_rows(run, gns, params, refs, attrs)
     meta = json.loads(Path(args.data).with_suffix(".metadata.json").read_text())
+    dim = int(meta.get("dim", 2))  # a 3D column's box follows from its runout estimate
+    box = dict(domain_length=0.8, domain_height=0.35) if dim == 2 else {}
     for row, at, ref in zip(rows, attrs, refs):
-        dim = int(meta.get("dim", 2))  # a 3D column's box follows from its runout estimate
-        box = dict(domain_length=0.8, domain_height=0.35) if dim == 2 else {}
         kw = dict(width=meta.get("width", 0.1), aspect_ratio=at["aspect_ratio"],
                   friction_angle=at["friction_angle"], cells_across=meta.get("cells_across", 8),
                   dim=dim, **box)
