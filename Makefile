@@ -127,7 +127,7 @@ granular-test-data: $(VENV)/.installed-test
 # frozen. Two shards per file (`make -j2 column3d-data`), each resumable.
 COLUMN3D = $(VENV)/bin/diffgns dataset --kind column --dim 3 --width 0.05 --cells-across 4 \
 	--frames 240 --batch 2
-.PHONY: column3d-data column3d-test-data
+.PHONY: column3d-data column3d-test-data column3d-test2-data
 column3d-data: data/column3d_train.h5 data/column3d_valid.h5
 
 data/column3d_train.shard-%-of-2.h5: $(VENV)/.installed-test
@@ -144,6 +144,13 @@ data/column3d_%.h5: data/column3d_%.shard-0-of-2.h5 data/column3d_%.shard-1-of-2
 column3d-test-data: $(VENV)/.installed-test
 	nice -n 19 $(COLUMN3D) --aspect-ratios 1.25 2 --friction-angles 32.5 42.5 \
 		--out data/column3d_test.h5
+
+# a second held-out set, drawn 2026-12-04 18:55 UTC (used for no choice of stage or model)
+# beside the 3-step variant (RUNS=runs/column3d_mp3): angles in none of the other sets (a·R0 must
+# be a whole number of cells, so a moves in steps of 0.25)
+column3d-test2-data: $(VENV)/.installed-test
+	nice -n 19 $(COLUMN3D) --aspect-ratios 1.25 1.75 --friction-angles 28.75 41.25 \
+		--out data/column3d_test2.h5
 
 # issue 23: the MeshGraphNet task this machine can learn (docs/guides/meshnet.md "Reynolds
 # sweep"): one cylinder, one ~1,300-vertex mesh, Re 100-250 for training, 5 held-out Re

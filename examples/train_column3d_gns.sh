@@ -17,7 +17,7 @@ set -euo pipefail
 DATA=${DATA:-data/column3d_train.h5}
 VALID=${VALID:-data/column3d_valid.h5}
 RUNS=${RUNS:-runs/column3d}
-NET="--radius 0.025 --latent 64 --mp-steps 5 --coarse-grain 8 --frame-stride 2 --batch-size 2"
+NET=${NET:-"--radius 0.025 --latent 64 --mp-steps 5 --coarse-grain 8 --frame-stride 2 --batch-size 2"}
 VALIDATE_EVERY=1500
 source "$(dirname "$0")/stages.sh"
 

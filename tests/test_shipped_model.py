@@ -67,8 +67,9 @@ def test_long_rollout_comes_to_rest_inside_the_box(model, cells_across):
     assert x[-1, :, 0].max() > 0.15  # it did collapse (column edge at 0.1 m)
 
 
-def test_3d_long_rollout_comes_to_rest_inside_the_box():
-    """The 3D model, 3x its training horizon (360 GNS frames of 5 ms; training trajectories
+@pytest.mark.parametrize("name", ["gns_columns3d", "gns_columns3d_fast"])
+def test_3d_long_rollout_comes_to_rest_inside_the_box(name):
+    """Each 3D model, 3x its training horizon (360 GNS frames of 5 ms; training trajectories
     have 120) on an axisymmetric column not in training (a = 1.25, phi = 32.5 deg, the held-out
     set's first case), in the scene's own box: no NaN, no clamp moving a node by more than a
     quarter node spacing (so no escape hidden by the box clamp), the kinetic
@@ -76,7 +77,7 @@ def test_3d_long_rollout_comes_to_rest_inside_the_box():
     (99th-percentile radius beyond 1.3 R0)."""
     from diffgns.scene.builders3d import axisymmetric_column
 
-    gns, params, info = load_model(model_path("gns_columns3d"))
+    gns, params, info = load_model(model_path(name))
     R0 = 0.05
     scene = axisymmetric_column(radius=R0, aspect_ratio=1.25, friction_angle=32.5,
                                 cells_across=4)
