@@ -145,7 +145,7 @@ column3d-test-data: $(VENV)/.installed-test
 	nice -n 19 $(COLUMN3D) --aspect-ratios 1.25 2 --friction-angles 32.5 42.5 \
 		--out data/column3d_test.h5
 
-# a second held-out set, drawn 2026-12-04 18:55 UTC (used for no choice of stage or model)
+# a second held-out set, drawn 2026-12-04 18:03 UTC (used for no choice of stage or model)
 # beside the 3-step variant (RUNS=runs/column3d_mp3): angles in none of the other sets (a·R0 must
 # be a whole number of cells, so a moves in steps of 0.25)
 column3d-test2-data: $(VENV)/.installed-test
