@@ -458,4 +458,3 @@ def test_3d_mpm_column_simulate_train_rollout(tmp_path, capsys):
     s, _ = json.JSONDecoder().raw_decode(out[out.index("{"):])
     assert s["finite"] and s["inside_domain"], s
     assert (tmp_path / "rollout" / "rollout.gif").stat().st_size > 0
-

@@ -306,7 +306,6 @@ def test_train_run_resumes_validates_and_writes_a_loadable_model(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-
 def test_a_resumed_fine_tune_ends_where_a_straight_one_does_in_the_start_models_units(
         tmp_path):
     """A fine-tune (``init_from``) with another noise, stopped at a checkpoint and resumed,
@@ -337,6 +336,7 @@ def test_a_resumed_fine_tune_ends_where_a_straight_one_does_in_the_start_models_
                  (g.normalizer.acceleration, g0.normalizer.acceleration)):
         np.testing.assert_array_equal(np.asarray(a.std), np.asarray(b.std))
         np.testing.assert_array_equal(np.asarray(a.mean), np.asarray(b.mean))
+
 
 def test_several_steps_in_one_call_equal_single_steps_and_redo_on_overflow():
     """Trainer.steps (k optimiser steps looped inside one device call, the default training
