@@ -5,15 +5,19 @@ All particle arrays are component-major: vectors (d, N), matrices (d, d, N); a p
 stencil has S = 3^d nodes (9 in 2D, 27 in 3D).
 
 Both transfers are shaped for XLA's CPU scatter and gather, whose cost grows with the number
-of indexed rows (measured in 2D, issue 22; `docs/performance.md`):
+of indexed rows (measured in 2D, issue 22, and 3D, issue 24; `docs/performance.md`). They
+address the grid by *rows*: the 3 consecutive nodes of a stencil along the grid's last
+(fastest) axis, so a stencil is 3^(d-1) rows (3 in 2D, 9 in 3D) of 3 nodes each.
 
-* :func:`p2g` computes the (S N, d + 1) contributions first and scatters them in one
-  ``scatter-add``; an ``optimization_barrier`` keeps XLA from fusing the arithmetic into the
-  scatter loop, where it was recomputed row by row (-23% P2G time at 8k particles).
-* :func:`g2p` first lays the grid velocities out as a (n_nodes, S d) *patch* array (node ->
-  the velocities of its stencil, S dense shifted copies), then gathers one row of S d
-  values per particle at its base node instead of S rows of d (-47% G2P time in 2D). Same
-  values, same order of summation.
+* :func:`p2g` computes the (S N, d + 1) contributions first, lays them out as
+  (S/3 N, 3, d + 1) rows and scatters them in one windowed ``scatter-add``; an
+  ``optimization_barrier`` keeps XLA from fusing the arithmetic into the scatter loop, where
+  it was recomputed row by row (-23% P2G time at 8k particles in 2D).
+* :func:`g2p` gathers the same rows of grid velocity in one windowed gather. An earlier
+  version first laid the grid out as a (n_nodes, S d) *patch* array (S dense shifted copies)
+  and gathered one row per particle: -47% G2P time in 2D, but in 3D the 27 copies of the
+  whole grid cost more than the gather they saved (the mpm3d J-fluid substep took 1.8x as
+  long as with the rows; 2026-12-04).
 """
 from __future__ import annotations
 
@@ -21,7 +25,13 @@ import jax
 import jax.numpy as jnp
 
 from diffgns.mpm.linalg import safe_div
-from diffgns.mpm.shape import flat_strides, offsets
+
+# A *row*: the 3 consecutive nodes of a stencil along the grid's last (fastest) axis; a
+# particle's stencil is 3^(d-1) rows, indexed by their first node (``idx[::3]``).
+_ROWS_SCATTER = jax.lax.ScatterDimensionNumbers(
+    update_window_dims=(1, 2), inserted_window_dims=(), scatter_dims_to_operand_dims=(0,))
+_ROWS_GATHER = jax.lax.GatherDimensionNumbers(
+    offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
 
 
 def _axpy_sum(first, terms):
@@ -49,10 +59,15 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
     mv = [w * _axpy_sum(momentum[c][None], [affine[c, a][None] * dxs[a] for a in range(d)])
           for c in range(d)]
     m = w * mass[None]
+    S = idx.shape[0]
+    # (S, N, d+1) -> one row of 3 consecutive nodes along the last axis per (outer offset,
+    # particle): (S/3 N, 3, d+1), scattered at the row's first node
+    vals = jnp.stack([*mv, m], -1).reshape(S // 3, 3, -1, d + 1).transpose(0, 2, 1, 3)
     # materialise the contributions: fused into the scatter they are recomputed per row
-    vals = jax.lax.optimization_barrier(jnp.stack([*mv, m], -1).reshape(-1, d + 1))
+    vals = jax.lax.optimization_barrier(vals.reshape(-1, 3, d + 1))
     grid = jnp.zeros((n_nodes, d + 1), vals.dtype)
-    return grid.at[idx.reshape(-1)].add(vals, mode="promise_in_bounds")
+    return jax.lax.scatter_add(grid, idx[::3].reshape(-1, 1), vals, _ROWS_SCATTER,
+                               mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
 def grid_velocity(grid: jax.Array) -> jax.Array:
@@ -60,24 +75,6 @@ def grid_velocity(grid: jax.Array) -> jax.Array:
     d = grid.shape[1] - 1
     inv = safe_div(1.0, grid[:, d])
     return jnp.stack([grid[:, c] * inv for c in range(d)])
-
-
-def stencil_patches(gv: jax.Array) -> jax.Array:
-    """(n_nodes, S d) velocities of each node's stencil, offsets i-major as in
-    :func:`~diffgns.mpm.shape.offsets`, components last: row ``b`` holds
-    ``gv[:, b + shift(o)]`` for the S offsets ``o`` (nodes past the grid's end read 0;
-    a particle's stencil never reaches them).
-
-    Args:
-        gv: (d, nx, ny[, nz]) grid velocity, m/s.
-    """
-    d, grid_shape = gv.shape[0], gv.shape[1:]
-    n_nodes = int(gv[0].size)
-    strides = flat_strides(grid_shape)
-    off = offsets(d)
-    shifts = [sum(int(off[a, k]) * strides[a] for a in range(d)) for k in range(off.shape[1])]
-    flat = jnp.pad(gv.reshape(d, n_nodes).T, ((0, max(shifts)), (0, 0)))  # (n + s, d)
-    return jnp.concatenate([flat[s:s + n_nodes] for s in shifts], axis=1)
 
 
 def g2p(idx, w, dpos, gv: jax.Array, dx: float):
@@ -95,8 +92,10 @@ def g2p(idx, w, dpos, gv: jax.Array, dx: float):
         raise ValueError(f"g2p: gv must be (d, nx, ny[, nz]) with d = 2 or 3, got shape "
                          f"{gv.shape}")
     S = 3 ** d
-    rows = stencil_patches(gv).at[idx[0]].get(mode="promise_in_bounds")  # (N, S d)
-    g = rows.reshape(-1, S, d).transpose(1, 0, 2)  # (S, N, d)
+    flat = gv.reshape(d, -1).T  # (n_nodes, d)
+    rows = jax.lax.gather(flat, idx[::3].reshape(-1, 1), _ROWS_GATHER, (3, d),
+                          mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)  # (S/3 N, 3, d)
+    g = rows.reshape(S // 3, -1, 3, d).transpose(0, 2, 1, 3).reshape(S, -1, d)  # (S, N, d)
     gw = [w * g[..., c] for c in range(d)]
     k = 4.0 / dx
     v = jnp.stack([gw[c].sum(0) for c in range(d)])
