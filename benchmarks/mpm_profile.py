@@ -12,7 +12,7 @@ frames of the collapse:
 * ``stencil``: base nodes, B-spline weights and offsets of every particle;
 * ``p2g``: MLS contributions + the one scatter-add to the grid;
 * ``grid``: momentum -> velocity, gravity, Coulomb walls (and obstacles if any);
-* ``g2p``: patch gather + APIC velocity gradient;
+* ``g2p``: row gather + APIC velocity gradient;
 * ``substep``: the whole substep as the solver runs it.
 
 The pieces are timed in interleaved rounds; their sum need not equal the whole (XLA fuses
