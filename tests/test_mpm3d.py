@@ -14,6 +14,7 @@ from diffgns.mpm.transfer import g2p, p2g
 from diffgns.scene import Box, Cylinder, Rectangle
 from diffgns.scene.builders3d import axisymmetric_column, slab_column
 from diffgns.scene.files import scene_from_dict, scene_to_dict
+from test_mpm_physics import _check_p2g_against_loops
 
 
 def block3d(gravity=(0.0, -9.81, 0.0), velocity=(0.0, 0.0, 0.0), material=None,
@@ -138,7 +139,7 @@ def test_drucker_prager_3d_gradient_matches_finite_differences(x64):
 
 
 # ------------------------------------------------------------------ transfers
-def test_p2g_mass_exact_and_g2p_equals_27_node_gather(x64):
+def test_p2g_mass_exact_and_row_transfers_equal_27_node_loops(x64):
     rng = np.random.default_rng(3)
     shape = (6, 7, 8)
     X = jnp.asarray(np.stack([rng.uniform(0.5, n - 1.5, 100) for n in shape]))
@@ -156,6 +157,7 @@ def test_p2g_mass_exact_and_g2p_equals_27_node_gather(x64):
     np.testing.assert_allclose(np.asarray(v), np.asarray((w * g).sum(1)), rtol=1e-12)
     C_ref = 40.0 * jnp.einsum("aon,bon->abn", w * g, dpos)
     np.testing.assert_allclose(np.asarray(C), np.asarray(C_ref), rtol=1e-11, atol=1e-11)
+    _check_p2g_against_loops(rng, idx, w, dpos, 6 * 7 * 8, 0.1)
 
 
 # ------------------------------------------------------------------ whole solver

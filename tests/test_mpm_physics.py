@@ -29,9 +29,10 @@ def test_mass_transfer_exact():
     np.testing.assert_allclose(np.asarray(w.sum(0)), 1.0, rtol=1e-6)
 
 
-def test_g2p_patch_gather_equals_nine_node_gather(x64):
-    """The patch-row gather of g2p reads exactly the nine stencil nodes of every particle
-    (reference: one gather per offset at idx), near all four grid edges too."""
+def test_row_transfers_equal_nine_node_loops(x64):
+    """The row gather of g2p reads exactly the nine stencil nodes of every particle, and the
+    row scatter of p2g adds the MLS contributions to exactly those nodes (references: one
+    gather / one np.add.at per offset at idx), near all four grid edges too."""
     rng = np.random.default_rng(3)
     shape = (7, 11)
     X = jnp.asarray(np.stack([rng.uniform(0.5, shape[0] - 1.5, 200),
@@ -46,6 +47,24 @@ def test_g2p_patch_gather_equals_nine_node_gather(x64):
     np.testing.assert_allclose(np.asarray(C), np.asarray(C_ref), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="nx, ny"):
         g2p(idx, w, dpos, gv.reshape(2, -1), 0.1)
+    _check_p2g_against_loops(rng, idx, w, dpos, int(np.prod(shape)), 0.1)
+
+
+def _check_p2g_against_loops(rng, idx, w, dpos, n_nodes, dx):
+    """p2g's grid equals per-offset np.add.at of w (m v + A (dpos dx)) and w m."""
+    d, S, n = dpos.shape
+    m, mv = rng.uniform(1, 2, n), rng.normal(size=(d, n))
+    A = rng.normal(size=(d, d, n))
+    grid = np.asarray(p2g(idx, w, dpos, jnp.asarray(m), jnp.asarray(mv), jnp.asarray(A),
+                          n_nodes, dx))
+    ref = np.zeros((n_nodes, d + 1))
+    W, D, I = np.asarray(w), np.asarray(dpos) * dx, np.asarray(idx)
+    for k in range(S):
+        contrib = mv + np.einsum("abn,bn->an", A, D[:, k])
+        for c in range(d):
+            np.add.at(ref[:, c], I[k], W[k] * contrib[c])
+        np.add.at(ref[:, d], I[k], W[k] * m)
+    np.testing.assert_allclose(grid, ref, rtol=1e-12, atol=1e-12)
 
 
 def test_momentum_conserved_in_free_flight(x64):

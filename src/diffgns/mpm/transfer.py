@@ -17,7 +17,9 @@ address the grid by *rows*: the 3 consecutive nodes of a stencil along the grid'
   version first laid the grid out as a (n_nodes, S d) *patch* array (S dense shifted copies)
   and gathered one row per particle: -47% G2P time in 2D, but in 3D the 27 copies of the
   whole grid cost more than the gather they saved (the mpm3d J-fluid substep took 1.8x as
-  long as with the rows; 2026-12-04).
+  long as with the rows; 2026-12-04). Its sums over the stencil are S - 1 fused adds
+  (:func:`_stencil_sum`), and the APIC gradient uses the constant offsets instead of a pass
+  over the (d, S, N) ``dpos``.
 """
 from __future__ import annotations
 
@@ -101,7 +103,8 @@ def g2p(idx, w, dpos, gv: jax.Array, dx: float):
     k = 4.0 / dx
     vs = [_stencil_sum(gw[c]) for c in range(d)]
     # sum_s gw_s dpos_as = sum_s gw_s off_as - fx_a v, with off_as in {0, 1, 2} constants
-    # and -fx_a = dpos[a, 0] (offset 0): no pass over the (S, N) offsets
+    # and -fx_a = dpos[a, 0] (offset 0 is the first column of ``offsets``): no pass over
+    # the (S, N) offsets
     off = offsets(d)
     C = k * jnp.stack([jnp.stack([_stencil_sum(gw[c], off[a]) + dpos[a, 0] * vs[c]
                                   for a in range(d)]) for c in range(d)])
@@ -109,10 +112,10 @@ def g2p(idx, w, dpos, gv: jax.Array, dx: float):
 
 
 def _stencil_sum(a: jax.Array, coef=None) -> jax.Array:
-    """(S, N) -> (N,): the sum over a stencil as S - 1 elementwise adds, which XLA fuses
-    into one pass over the particles. (``a.sum(0)`` became a library reduction on the CPU
-    that read the (S, N) array across its rows: 12 of them took 90% of a 3D sand substep
-    at 43k particles.)"""
+    """(S, N) -> (N,): ``sum_s coef_s a_s`` (``coef``: S small integer constants, default
+    all 1; zero terms are skipped) as elementwise adds, which XLA fuses into one pass over
+    the particles. (``a.sum(0)`` became a library reduction on the CPU that read the (S, N)
+    array across its rows: 12 of them took 90% of a 3D sand substep at 43k particles.)"""
     if coef is None:
         return _axpy_sum(a[0], [a[s] for s in range(1, a.shape[0])])
     terms = [a[s] if c == 1 else c * a[s] for s, c in enumerate(coef) if c != 0]
