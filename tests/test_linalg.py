@@ -79,3 +79,12 @@ def test_safe_norm_and_div_gradients_at_zero(x64):
     assert np.isfinite(np.asarray(g)).all()
     g = jax.grad(lambda d: la.safe_div(1.0, d))(0.0)
     assert np.isfinite(g)
+
+
+def test_sum0_weighted_first_axis_sum_matches_numpy(x64):
+    """sum0 sums over the first axis with constant weights (zeros skipped), as jnp would."""
+    a = jnp.asarray(np.random.default_rng(0).normal(size=(27, 5)))
+    np.testing.assert_allclose(np.asarray(la.sum0(a)), np.asarray(a).sum(0), rtol=1e-13)
+    coef = np.random.default_rng(1).integers(0, 3, 27)
+    np.testing.assert_allclose(np.asarray(la.sum0(a, coef)), coef @ np.asarray(a),
+                               rtol=1e-12, atol=1e-14)

@@ -18,14 +18,15 @@ address the grid by *rows*: the 3 consecutive nodes of a stencil along the grid'
   and gathered one row per particle: -47% G2P time in 2D, but in 3D the 27 copies of the
   whole grid cost more than the gather they saved (the mpm3d J-fluid substep took 1.8x as
   long as with the rows; 2026-12-04). Its sums over the stencil are S - 1 fused adds
-  (:func:`_stencil_sum`), and the APIC gradient uses the constant offsets instead of a pass
-  over the (d, S, N) ``dpos``.
+  (:func:`~diffgns.mpm.linalg.sum0`), and the APIC gradient uses the constant offsets
+  instead of a pass over the (d, S, N) ``dpos``.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
+from diffgns.mpm import linalg as la
 from diffgns.mpm.linalg import safe_div
 from diffgns.mpm.shape import offsets
 
@@ -35,13 +36,6 @@ _ROWS_SCATTER = jax.lax.ScatterDimensionNumbers(
     update_window_dims=(1, 2), inserted_window_dims=(), scatter_dims_to_operand_dims=(0,))
 _ROWS_GATHER = jax.lax.GatherDimensionNumbers(
     offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
-
-
-def _axpy_sum(first, terms):
-    out = first
-    for t in terms:
-        out = out + t
-    return out
 
 
 def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
@@ -59,7 +53,7 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
     """
     d = momentum.shape[0]
     dxs = [dpos[a] * dx for a in range(d)]
-    mv = [w * _axpy_sum(momentum[c][None], [affine[c, a][None] * dxs[a] for a in range(d)])
+    mv = [w * la._sum([momentum[c][None], *[affine[c, a][None] * dxs[a] for a in range(d)]])
           for c in range(d)]
     m = w * mass[None]
     S = idx.shape[0]
@@ -101,22 +95,12 @@ def g2p(idx, w, dpos, gv: jax.Array, dx: float):
     g = rows.reshape(S // 3, -1, 3, d).transpose(0, 2, 1, 3).reshape(S, -1, d)  # (S, N, d)
     gw = [w * g[..., c] for c in range(d)]
     k = 4.0 / dx
-    vs = [_stencil_sum(gw[c]) for c in range(d)]
+    vs = [la.sum0(gw[c]) for c in range(d)]
     # sum_s gw_s dpos_as = sum_s gw_s off_as - fx_a v, with off_as in {0, 1, 2} constants
     # and -fx_a = dpos[a, 0] (offset 0 is the first column of ``offsets``): no pass over
     # the (S, N) offsets
     off = offsets(d)
-    C = k * jnp.stack([jnp.stack([_stencil_sum(gw[c], off[a]) + dpos[a, 0] * vs[c]
+    C = k * jnp.stack([jnp.stack([la.sum0(gw[c], off[a]) + dpos[a, 0] * vs[c]
                                   for a in range(d)]) for c in range(d)])
     return jnp.stack(vs), C
 
-
-def _stencil_sum(a: jax.Array, coef=None) -> jax.Array:
-    """(S, N) -> (N,): ``sum_s coef_s a_s`` (``coef``: S small integer constants, default
-    all 1; zero terms are skipped) as elementwise adds, which XLA fuses into one pass over
-    the particles. (``a.sum(0)`` became a library reduction on the CPU that read the (S, N)
-    array across its rows: 12 of them took 90% of a 3D sand substep at 43k particles.)"""
-    if coef is None:
-        return _axpy_sum(a[0], [a[s] for s in range(1, a.shape[0])])
-    terms = [a[s] if c == 1 else c * a[s] for s, c in enumerate(coef) if c != 0]
-    return _axpy_sum(terms[0], terms[1:])
