@@ -1,14 +1,18 @@
-"""The inversion table: friction angle recovered from an observed MPM runout, over columns.
+"""The inversion table: friction angle recovered from an observed MPM runout, over scenes.
 
     .venv/bin/python benchmarks/inverse_sweep.py [--model gns_cg16_pfn]
-        [--aspect-ratios 0.5 1 1.5 2 2.5 3] [--phis 20 25 30 35 40 45]
-        [--simulators gns mpm] [--start-phi 45] [--max-iter 20] [--out inverse_sweep]
+        [--aspect-ratios 0.5 1 1.5 2 2.5 3] [--scenes squares:5 obstacles:2 ...]
+        [--frames 250] [--phis 20 25 30 35 40 45] [--simulators gns mpm] [--start-phi 45]
+        [--max-iter 20] [--out inverse_sweep]
 
-For every column (aspect ratio ``a``; the column of the model's training data:
-``ColumnCase.from_model``, its box, width, MPM resolution, nodes and frame stride) and every
-true friction angle ``phi``, the observation is the MPM collapse at ``phi`` seen as the GNS
+The scenes are columns (aspect ratio ``a``; the column of the model's training data:
+``ColumnCase.from_model``, its box, width, MPM resolution, nodes and frame stride) and, with
+``--scenes FAMILY:SEED``, random scenes of the generator
+(:func:`diffgns.scene.families.random_scene`, ``--frames`` frames, the model's nodes and frame
+stride; ``--aspect-ratios`` with no value for none). For every scene and every
+true friction angle ``phi``, the observation is the MPM run at ``phi`` seen as the GNS
 sees it (nodes, frames); ``phi`` is then recovered from the observed final runout (soft
-maximum of the nodes, objective "runout") by the one inverse path of the package
+maximum of the nodes' x, objective "runout") by the one inverse path of the package
 (:func:`diffgns.inverse.job.make_simulator`, :func:`~diffgns.inverse.job.make_objective`,
 :func:`~diffgns.inverse.job.solve`: Gauss-Newton on logit(phi / 90), exact gradients through
 the checkpointed rollout), through each simulator of ``--simulators``.
@@ -34,24 +38,29 @@ RESULTS = Path(__file__).resolve().parent / "results"
 TARGET_DEG = {"gns": 1.0, "mpm": 0.5, "hybrid": 1.0}  # issue 21's tolerances
 
 
+def scene_label(row: dict) -> str:
+    """"column a=1.5" or the ``FAMILY:SEED`` of a random scene."""
+    return row.get("scene") or f"column a={float(row['aspect_ratio']):g}"
+
+
 def key(row: dict) -> tuple:
-    return (row["simulator"], float(row["aspect_ratio"]), float(row["true_phi"]))
+    return (row["simulator"], scene_label(row), float(row["true_phi"]))
 
 
 def markdown(rows: list[dict], model: str) -> str:
     """The table of ``rows`` (one line per simulator, aspect ratio and true phi)."""
     lines = [f"Friction angle recovered from the observed MPM runout (model `{model}`; "
              "seconds: whole job incl. compile, indicative only, load average in brackets)",
-             "", "| simulator | aspect ratio | true φ (°) | recovered φ (°) | error (°) | "
+             "", "| simulator | scene | true φ (°) | recovered φ (°) | error (°) | "
              "within target | iterations | seconds (load) |", "|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=key):
         if "failed" in r:
-            lines.append(f"| {r['simulator']} | {r['aspect_ratio']:g} | {r['true_phi']:g} | "
+            lines.append(f"| {r['simulator']} | {scene_label(r)} | {r['true_phi']:g} | "
                          f"failed: {r['failed']} |||||")
             continue
         ok = abs(r["error_deg"]) <= TARGET_DEG[r["simulator"]]
         lines.append(
-            f"| {r['simulator']} | {r['aspect_ratio']:g} | {r['true_phi']:g} | "
+            f"| {r['simulator']} | {scene_label(r)} | {r['true_phi']:g} | "
             f"{r['recovered_phi']:.2f} | {r['error_deg']:+.2f} | "
             f"{'yes' if ok else 'no'} (±{TARGET_DEG[r['simulator']]:g}) | {r['iterations']} | "
             f"{r['seconds']:.0f} ({r['load_1min']:.1f}) |")
@@ -67,8 +76,11 @@ def markdown(rows: list[dict], model: str) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default=None, help="GNS model (default: the inverse default)")
-    ap.add_argument("--aspect-ratios", type=float, nargs="+",
+    ap.add_argument("--aspect-ratios", type=float, nargs="*",
                     default=[0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+    ap.add_argument("--scenes", nargs="*", default=[], metavar="FAMILY:SEED",
+                    help="random scenes of diffgns.scene.families (e.g. squares:5)")
+    ap.add_argument("--frames", type=int, default=250, help="MPM frames of a random scene")
     ap.add_argument("--phis", type=float, nargs="+", default=[20, 25, 30, 35, 40, 45])
     ap.add_argument("--simulators", nargs="+", default=["gns"],
                     choices=["gns", "mpm", "hybrid"])
@@ -83,6 +95,7 @@ def main(argv=None) -> None:
     run = protocol.start(args, "inverse_sweep")  # load, steal, commit; refuses if loaded
 
     from diffgns.inverse.job import make_objective, make_simulator, solve
+    from diffgns.inverse.observation import SceneObservation
     from diffgns.inverse.simulators import (
         DEFAULT_MODEL,
         Column,
@@ -90,6 +103,7 @@ def main(argv=None) -> None:
         load_gns,
         model_info,
     )
+    from diffgns.scene.families import random_scene
 
     model = args.model or DEFAULT_MODEL
     loaded = load_gns(model) if set(args.simulators) - {"mpm"} else None
@@ -99,13 +113,21 @@ def main(argv=None) -> None:
     rows: list[dict] = json.loads(jpath.read_text())["rows"] if jpath.exists() else []
     done = {key(r) for r in rows}
     work = Path(os.environ.get("TMPDIR", "/tmp")) / f"diffgns_{args.out}"
-    for a in args.aspect_ratios:
+    cases = [(f"column a={a:g}", dict(aspect_ratio=a), lambda a=a: Column(
+        ColumnCase.from_model(info, a))) for a in args.aspect_ratios]
+    for spec in args.scenes:
+        family, _, seed = spec.partition(":")
+        if not seed.isdigit():
+            ap.error(f"--scenes {spec!r}: use FAMILY:SEED, e.g. squares:5")
+        cases.append((spec, dict(scene=spec), lambda f=family, n=int(seed): (
+            SceneObservation.for_model(random_scene(f, n), info, args.frames, model=model))))
+    for label, fields, build in cases:
         col = None
         for phi in args.phis:
-            todo = [s for s in args.simulators if (s, float(a), float(phi)) not in done]
+            todo = [s for s in args.simulators if (s, label, float(phi)) not in done]
             if not todo:
                 continue
-            col = col or Column(ColumnCase.from_model(info, a))
+            col = col or build()
             truth = {"friction_angle": float(phi)}
             t0 = time.perf_counter()
             observed = col.observation(truth)
@@ -113,9 +135,9 @@ def main(argv=None) -> None:
             start = args.start_phi if abs(args.start_phi - phi) > 1e-6 else 35.0
             for sim_kind in todo:
                 theta0 = {"friction_angle": start}
-                print(f"--- {sim_kind}: a = {a:g}, phi = {phi:g} (start {start:g}); "
+                print(f"--- {sim_kind}: {label}, phi = {phi:g} (start {start:g}); "
                       f"observation {t_obs:.0f} s", flush=True)
-                row = dict(simulator=sim_kind, aspect_ratio=a, true_phi=phi, start_phi=start,
+                row = dict(simulator=sim_kind, **fields, true_phi=phi, start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
                            observation_s=t_obs)
                 t1 = time.perf_counter()
@@ -123,7 +145,8 @@ def main(argv=None) -> None:
                     sim = make_simulator(sim_kind, col, model, loaded=loaded,
                                          observed=observed, theta0=theta0)
                     objective = make_objective("runout", col, observed=observed)
-                    s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{a:g}_{phi:g}",
+                    tag = label.replace(" ", "_").replace(":", "_").replace("=", "")
+                    s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
                               max_iter=args.max_iter, step_tol=args.step_tol,
                               observed=observed, truth=truth, label=sim_kind, t_start=t1)
                     row.update(recovered_phi=s["recovered"]["friction_angle"],

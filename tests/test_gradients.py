@@ -158,3 +158,54 @@ def test_wall_friction_and_empty_node_gradients_finite_at_rest(x64):
     empty = jnp.zeros((5, 3))  # no mass anywhere
     gv = jax.grad(lambda grid: grid_velocity(grid).sum())(empty)
     assert np.isfinite(np.asarray(gv)).all()
+
+
+def test_grid_velocity_derivative_bounded_at_a_stencil_corner_node():
+    """A node only the far corner of one particle's stencil reaches (mass ~3e-20 kg in
+    float32): the cotangent reaching it through G2P carries the same tiny weight, so the
+    mass and momentum cotangents are bounded; computed through 1 / m^2 (~1e39) they were
+    inf. Checked against float64, and against finite differences at ordinary masses."""
+    m_small, w_small, v = 3e-20, 1.6e-18, np.array([0.3, -0.7])
+    grid = np.array([[0.02, -0.01, 0.01],          # an ordinary node
+                     [*(m_small * v), m_small],    # the corner node
+                     [0.0, 0.0, 0.0]])             # an empty node
+    cot = np.array([[0.5, 1.0 * w_small, 0.2],     # G2P: the corner node's cotangent
+                    [-0.4, -2.0 * w_small, 0.1]])  # carries the particle's weight
+
+    def vjp(dtype):
+        g, pull = jax.vjp(grid_velocity, jnp.asarray(grid, dtype))
+        return np.asarray(g), np.asarray(pull(jnp.asarray(cot, dtype))[0])
+
+    with jax.enable_x64(True):
+        v64, g64 = vjp(jnp.float64)
+        check_grads(grid_velocity, (jnp.asarray([[0.6, -0.3, 1.5], [0.2, 0.1, 0.7]]),),
+                    order=2, modes=["fwd", "rev"], eps=1e-6)
+    v32, g32 = vjp(jnp.float32)
+    assert np.isfinite(g32).all()
+    np.testing.assert_allclose(v32[:, 1], v, rtol=1e-6)
+    np.testing.assert_array_equal(v32[:, 2], 0.0)   # empty: at rest, zero gradient
+    np.testing.assert_array_equal(g32[2], 0.0)
+    np.testing.assert_allclose(g32, g64, rtol=1e-5, atol=1e-30)
+    assert 10 < abs(g32[1, 2]) < 1e3  # -v . cot / m = -91 kg^-1 m/s: bounded, not zero
+
+
+@pytest.mark.slow  # ~60 s: 100 frames of a 2,560-particle column, float32 and float64
+def test_jitted_gradient_through_a_column_finite_where_it_once_was_nan():
+    """The inverse sweep's case (gns_cg16_pfn's column a = 2.5, phi = 45): under jit the
+    float32 gradient of the runout through 100 frames was NaN (a corner-stencil node at
+    frame 92); it is finite and within 1% of float64."""
+    from diffgns.inverse.simulators import Column, ColumnCase, model_info
+
+    def grad(dtype):
+        col = Column(ColumnCase.from_model(model_info("gns_cg16_pfn"), 2.5), dtype=dtype)
+
+        def f(phi):
+            x = col.mpm_positions({"friction_angle": phi}, 100, 25)[-1, :, 0]
+            return jax.nn.logsumexp(x / 0.002) * 0.002
+        return float(jax.jit(jax.grad(f))(jnp.asarray(45.0, dtype)))
+
+    g32 = grad(jnp.float32)
+    with jax.enable_x64(True):
+        g64 = grad(jnp.float64)
+    assert np.isfinite(g32) and g64 < 0
+    assert g32 == pytest.approx(g64, rel=1e-2)

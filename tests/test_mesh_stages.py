@@ -8,7 +8,7 @@ import pytest
 from diffgns.errors import InputError
 from diffgns.mesh.meshnet import pad_mesh
 from diffgns.mesh.stages import Stage, parse_stages, stage_at, unrolled_loss
-from test_meshnet import NU, _grid_mesh, _model, _synthetic_dataset
+from test_meshnet import NU, WALL, _grid_mesh, _model, _synthetic_dataset
 
 
 def _setup(k=3, seed=0):
@@ -160,3 +160,78 @@ def test_sweep_time_step_survives_the_spin_pulse_at_the_highest_reynolds_number(
     mesh, prm = case_setup(sw.case(0), sw.run)
     res = run_case(mesh, prm, sw.run.kick_time + 0.05, sw.run.frame_dt)
     assert np.isfinite(res.velocity).all() and np.abs(res.velocity).max() < 3 * sw.u_max
+
+
+def test_near_wall_ring_and_its_loss_weight():
+    """The ring is the predicted nodes one mesh edge from a wall node; the weighted loss is
+    the weighted node mean of the one-step errors (weight 1 = the unweighted loss)."""
+    from diffgns.mesh.meshnet import FLUID, near_wall
+    from diffgns.mesh.stages import loss_weights
+
+    pos, cells, types = _grid_mesh(6, 6)  # walls at rows j = 0 and 5
+    g = pad_mesh(pos, cells, types, 48, 192, NU)
+    nbrs = {n: set() for n in range(36)}
+    for c in cells:
+        for a in c:
+            nbrs[a].update(c)
+    ring = np.zeros(48, bool)
+    ring[:36] = [bool(g.predicted[n]) and any(types[m] == WALL for m in nbrs[n])
+                 for n in range(36)]
+    np.testing.assert_array_equal(np.asarray(near_wall(g)), ring)
+    j = np.arange(36) % 6  # rows 2 and 3 are two edges from the walls
+    assert not ring[:36][np.isin(j, (2, 3))].any() and ring.sum() >= 8
+    w = np.asarray(loss_weights(g, 4.0))
+    np.testing.assert_array_equal(w, np.where(ring, 4.0, np.asarray(g.predicted, float)))
+
+    model = _model()
+    params = model.init_network(jax.random.PRNGKey(0), g)
+    rng = np.random.default_rng(1)
+    v = jnp.asarray(rng.normal(size=(2, 48, 2)), jnp.float32)
+    p = jnp.asarray(rng.normal(size=(1, 48)), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    new_v, new_p = model.advance(params, g, v[0], v[0])
+    s = model.stats.target.std
+    e = (np.asarray(((new_v - v[1]) / s[:2]) ** 2).sum(1)
+         + np.asarray(((new_p - p[0]) / s[2]) ** 2))
+    for weight in (1.0, 4.0):
+        ww = np.asarray(loss_weights(g, weight))
+        want = (ww * e).sum() / (3 * ww.sum())
+        got = unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=weight)
+        np.testing.assert_allclose(float(got), want, rtol=1e-5)
+    assert (np.asarray(g.node_type)[ring] == FLUID).any()
+    assert float(unrolled_loss(model, params, g, v, p, key, 0.0)) == float(
+        unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=1.0))
+
+
+def test_staged_training_starts_from_a_model_and_refuses_bad_options(tmp_path):
+    """--init-from: the run starts at the model's params and keeps its normalisers (a step at
+    a vanishing learning rate leaves them); another configuration or a weight <= 0 is refused."""
+    from diffgns.graph.fit import TrainConfig
+    from diffgns.mesh.meshnet import MeshNetConfig
+    from diffgns.mesh.stages import main, train_staged
+    from diffgns.mesh.train import load_model
+
+    _synthetic_dataset(tmp_path / "d.h5")
+    cfg = MeshNetConfig(latent=8, mp_steps=1)
+    tc = lambda lr: TrainConfig(steps=2, batch_size=1, lr=lr, lr_final=lr, log_every=1,
+                                checkpoint_every=1)
+    train_staged(tmp_path / "d.h5", tmp_path / "a", cfg, tc(1e-2), parse_stages("2:0.01:1"),
+                 progress=False)
+    start, p_start, _ = load_model(tmp_path / "a" / "model")
+    _, p_b = train_staged(tmp_path / "d.h5", tmp_path / "b", cfg, tc(1e-12),
+                          parse_stages("2:0.0:2"), progress=False, near_wall_weight=3.0,
+                          init_from=tmp_path / "a" / "model")
+    model_b, _, info = load_model(tmp_path / "b" / "model")
+    for a, b in zip(jax.tree_util.tree_leaves(p_start), jax.tree_util.tree_leaves(p_b)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-8)
+    leaves = jax.tree_util.tree_leaves
+    for a, b in zip(leaves(start.stats), leaves(model_b.stats)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert info["near_wall_weight"] == 3.0 and info["init_from"].endswith("model")
+    with pytest.raises(ValueError, match="configuration"):
+        train_staged(tmp_path / "d.h5", tmp_path / "c", MeshNetConfig(latent=4, mp_steps=1),
+                     tc(1e-3), parse_stages("2:0.0:1"), progress=False,
+                     init_from=tmp_path / "a" / "model")
+    with pytest.raises(InputError, match="near-wall-weight"):
+        main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
+              "--stages", "2:0.0:1", "--near-wall-weight", "0"])

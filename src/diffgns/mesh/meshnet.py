@@ -92,6 +92,14 @@ class MeshGraph:
         return (self.node_type == FLUID) | (self.node_type == OUTFLOW)
 
 
+def near_wall(graph: MeshGraph) -> jax.Array:
+    """(N,) bool: predicted (fluid or outflow) nodes joined by a mesh edge to a wall node,
+    the first ring off the cylinder and the channel walls (padded edges ignored)."""
+    from_wall = (graph.node_type[graph.senders] == WALL) & graph.edge_mask
+    hit = jnp.zeros(graph.node_type.shape, bool).at[graph.receivers].max(from_wall)
+    return hit & graph.predicted
+
+
 def mesh_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Directed edges (senders, receivers) of a triangle mesh: each side once per direction.
 

@@ -49,8 +49,9 @@ from diffgns.graph.fit import (
 from diffgns.interface import scan_frames
 from diffgns.io.dataset import read_metadata
 from diffgns.io.files import check_input_file
-from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig
+from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, near_wall
 from diffgns.mesh.train import (
+    fine_tune_start,
     graphs_of,
     load_cylinder,
     padded_fields,
@@ -106,22 +107,35 @@ def stage_at(stages: Sequence[Stage], step: int) -> Stage:
     return stages[-1]
 
 
+def loss_weights(graph: MeshGraph, near_wall_weight: float = 1.0) -> jax.Array:
+    """(N,) per-node loss weights: 0 on nodes the model does not advance, ``near_wall_weight``
+    on the first ring of fluid nodes off the walls (:func:`~diffgns.mesh.meshnet.near_wall`),
+    1 elsewhere."""
+    w = graph.predicted.astype(graph.mesh_pos.dtype)
+    if near_wall_weight == 1.0:
+        return w
+    return w * jnp.where(near_wall(graph), near_wall_weight, 1.0)
+
+
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
-                  key: jax.Array, noise_std, checkpoint: bool = True) -> jax.Array:
-    """Mean normalised error of a ``K``-frame model rollout against the data.
+                  key: jax.Array, noise_std, checkpoint: bool = True,
+                  near_wall_weight: float = 1.0) -> jax.Array:
+    """Weighted mean normalised error of a ``K``-frame model rollout against the data.
 
     Args:
         v_win: (K + 1, N, 2) data velocities of frames t..t+K, m/s.
         p_win: (K, N) data pressures of frames t+1..t+K, m^2/s^2.
         key: noise key; ``noise_std`` (m/s, scalar, may be traced) on fluid nodes of frame t.
         checkpoint: every frame under ``jax.checkpoint`` (same values, less memory).
+        near_wall_weight: static weight of the first fluid ring off the walls in the node
+            mean (:func:`loss_weights`; 1 = every predicted node alike).
     Returns:
         scalar loss (dimensionless).
     """
     v0 = v_win[0]
     noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
     v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
-    w = graph.predicted.astype(v0.dtype)
+    w = loss_weights(graph, near_wall_weight).astype(v0.dtype)
     norm = 3 * jnp.maximum(w.sum(), 1.0)
     s_dv = model.stats.target.std[:2]
 
@@ -151,10 +165,16 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
 
 
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
-                 stages: Sequence[Stage], progress: bool = True) -> tuple[MeshNet, dict]:
+                 stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
+                 init_from=None) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
-    and ``out_dir/model``. Returns (model, params)."""
+    and ``out_dir/model``. ``near_wall_weight``: see :func:`unrolled_loss`. ``init_from``: a
+    model folder of the same configuration to start from (its params and normalisers,
+    :func:`diffgns.mesh.train.fine_tune_start`; a fresh optimiser, steps counted from 0; a
+    resumed run keeps that model's normalisers). Returns (model, params)."""
+    if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
+        raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
     out = Path(out_dir)
     trajs = load_cylinder(train_path)
     padding = padding_for(trajs)
@@ -169,12 +189,16 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     opt = make_optimizer(tcfg)
     params = model.init_network(jax.random.PRNGKey(tcfg.seed),
                                 jax.tree_util.tree_map(lambda a: a[0], graphs))
+    if init_from is not None:
+        params, stats = fine_tune_start(init_from, cfg, params, model.stats)
+        model = MeshNet(cfg, stats, frame_dt=model.frame_dt)
     updates: dict = {}
 
     def update_fn(k: int):
         def batch_loss(params, g, v, p, key, noise):
             keys = jax.random.split(key, v.shape[0])
-            f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise)
+            f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise,
+                                                     near_wall_weight=near_wall_weight)
             return jax.vmap(f)(g, v, p, keys).mean()
 
         @jax.jit
@@ -201,7 +225,9 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
 
     info = dict(train=dataclasses.asdict(tcfg), data=str(train_path), n_trajectories=T,
                 stages=[dataclasses.asdict(s) for s in stages],
-                frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages")
+                frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages",
+                near_wall_weight=near_wall_weight,
+                init_from=None if init_from is None else str(init_from))
     opt_state = opt.init(params)
     try:
         params, _, step = fit(one_step, params, opt_state, tcfg, out, info,
@@ -230,6 +256,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--lr-decay-steps", type=int, default=None, help="default: the run length")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=250)
+    p.add_argument("--near-wall-weight", type=float, default=1.0,
+                   help="loss weight of the first fluid ring off the walls (default 1)")
+    p.add_argument("--init-from", default=None,
+                   help="model folder of the same configuration to start from")
     a = p.parse_args(argv)
     check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
@@ -244,7 +274,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                        lr_decay_steps=a.lr_decay_steps or n, seed=a.seed,
                        checkpoint_every=a.checkpoint_every)
     cfg = MeshNetConfig(latent=a.latent, mp_steps=a.mp_steps, noise_std=stages[0].noise_std)
-    train_staged(a.data, a.out, cfg, tcfg, stages)
+    train_staged(a.data, a.out, cfg, tcfg, stages, near_wall_weight=a.near_wall_weight,
+                 init_from=a.init_from)
     print(f"model written to {a.out}/model")
     return 0
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from diffgns.mpm import linalg as la
-from diffgns.mpm.linalg import safe_div
+from diffgns.mpm.linalg import tiny
 from diffgns.mpm.shape import offsets
 
 # A *row*: the 3 consecutive nodes of a stencil along the grid's last (fastest) axis; a
@@ -67,11 +67,38 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
+def _inverse_mass(m: jax.Array) -> jax.Array:
+    """1 / m where m > ``tiny`` (kg), else 0: a node no particle reaches, or one only the
+    vanishing corner of a stencil touches (weights ~1e-10 per axis), counts as empty."""
+    ok = m > tiny(m.dtype)
+    return jnp.where(ok, 1.0 / jnp.where(ok, m, 1.0), 0.0)
+
+
+@jax.custom_jvp
 def grid_velocity(grid: jax.Array) -> jax.Array:
-    """Grid velocity (d, n_nodes) from momentum and mass; 0 at empty nodes (finite gradient)."""
+    """Grid velocity (d, n_nodes) m/s from ``grid`` (n_nodes, d + 1) = [momentum (kg m/s),
+    mass (kg)]; 0 at empty nodes.
+
+    The derivative is written as dv = (dp - v dm) / m, never with 1 / m^2: a node reached
+    only by the far corner of one particle's stencil has a mass of ~1e-20 kg, and the
+    chain rule of p / m then forms 1 / m^2 ~ 1e40, which overflows float32 (and inf * 0 gives
+    NaN) although the derivative itself is bounded (v of such a node is the particle's own
+    affine velocity). Found as a NaN gradient of an inverse sweep (column a = 2.5, phi = 45,
+    frame 92 of gns_cg16_pfn's MPM, only under jit).
+    """
     d = grid.shape[1] - 1
-    inv = safe_div(1.0, grid[:, d])
+    inv = _inverse_mass(grid[:, d])
     return jnp.stack([grid[:, c] * inv for c in range(d)])
+
+
+@grid_velocity.defjvp
+def _grid_velocity_jvp(primals, tangents):
+    (grid,), (dgrid,) = primals, tangents
+    d = grid.shape[1] - 1
+    inv = _inverse_mass(grid[:, d])
+    v = jnp.stack([grid[:, c] * inv for c in range(d)])
+    dv = jnp.stack([(dgrid[:, c] - v[c] * dgrid[:, d]) * inv for c in range(d)])
+    return v, dv
 
 
 def g2p(idx, w, dpos, gv: jax.Array, dx: float):
