@@ -320,7 +320,10 @@ class Hybrid:
         x_next = x_next.astype(hist.dtype)
         snd, rcv, msk = edges(nbrs, x.shape[0])
         disp = x_next - x
-        vel = disp / self.frame_dt
+        # velocity at the end of the frame, where the MPM takes over: the backward difference
+        # disp / dt is the frame's mean (half a frame late, a dt / 2 off in a collapse), so
+        # add half the frame's change of it (second-order backward difference)
+        vel = (1.5 * disp - 0.5 * (x - hist[:, -2])) / self.frame_dt
         grad_v = lsq_gradient(vel, x_next, snd, rcv, msk)
         sched = self.schedule
         needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
