@@ -236,3 +236,30 @@ def test_joint_example_identifies_friction_angle_and_aspect_ratio_with_the_mpm(t
     assert abs(s["recovered"]["friction_angle"] - 30.0) <= 0.5
     assert abs(s["recovered"]["aspect_ratio"] - 1.75) <= 0.02
     assert s["identifiability"]["front_condition_number"] < 100
+
+
+def test_a_step_back_to_an_earlier_iterate_stops_as_a_cycle():
+    """A gradient of the wrong sign at the start (a noisy objective): Gauss-Newton's clipped
+    step goes up to ~65.8 deg, the next comes back to 45 exactly; the loop says so and stops
+    instead of repeating the two points until max_iter."""
+    @jax.custom_jvp
+    def residual(phi):
+        return 0.02 * (phi - 30.0)
+
+    @residual.defjvp
+    def _jvp(p, t):  # true slope 0.02/deg, but of the wrong sign at and near 45 deg
+        (phi,), (dphi,) = p, t
+        slope = jnp.where(jnp.abs(phi - 45.0) < 0.5, -1e-4, 0.02)
+        return residual(phi), slope * dphi
+
+    res = inverse.optimize(lambda th: residual(th["friction_angle"]) ** 2,
+                           {"friction_angle": 45.0}, inverse.make_optimizer("gauss-newton"),
+                           max_iter=20, step_tol=0.01)
+    phis = [h["theta"]["friction_angle"] for h in res.history]
+    assert len(phis) == 2 and phis[1] > 60.0
+    assert not res.converged and res.stop_reason.startswith("cycle: ")
+    assert "iteration 0" in res.stop_reason
+    ok = inverse.optimize(lambda th: (0.02 * (th["friction_angle"] - 30.0)) ** 2,
+                          {"friction_angle": 45.0}, inverse.make_optimizer("gauss-newton"),
+                          max_iter=20, step_tol=0.01)
+    assert ok.converged and abs(ok.theta["friction_angle"] - 30.0) < 0.01

@@ -88,6 +88,16 @@ def record(it: int, tf: dict, u: dict, loss, g_u: dict, aux, t0: float, t_start:
     return rec
 
 
+def _revisits(history: list, theta: dict, tol: dict) -> int | None:
+    """The first iteration of ``history`` whose parameters are within ``tol`` (physical
+    units, by name; at least 1e-9 relative) of ``theta``, or None."""
+    for h in history:
+        if all(abs(h["theta"][k] - v) <= max(tol.get(k, 0.0), 1e-9 * abs(v))
+               for k, v in theta.items()):
+            return h["iteration"]
+    return None
+
+
 def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransformation,
              max_iter: int = 20, transforms: dict | None = None, loss_tol: float = 0.0,
              step_tol: float | dict = 0.0, gradient: str = "ad", fd_rel_step: float = 1e-3,
@@ -104,7 +114,11 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             Identity otherwise.
         loss_tol: stop when the loss is at or below this.
         step_tol: stop when every proposed step (physical units; a float or a dict by name)
-            is smaller than this; the final theta is then the last evaluated one.
+            is smaller than this; the final theta is then the last evaluated one. A step
+            back to an earlier iterate (within ``step_tol``) stops the loop unconverged with a
+            "cycle" reason: the loop is deterministic, so the cycle would only repeat (seen
+            with Gauss-Newton on the MPM where the float32 gradient of a tall collapse is
+            noisy: its sign flips within 0.01 deg).
         gradient: "ad" (value_and_grad, compiled ahead of time) or "fd" (central finite
             differences of the compiled loss in physical units, step
             :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``).
@@ -176,6 +190,13 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if all(step[k] < tol.get(k, 0.0) for k in u):
             result.converged = True
             result.stop_reason = "step < step_tol"
+            break
+        back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
+                         tol)
+        if back is not None:  # deterministic: the same points would follow again
+            result.stop_reason = (
+                f"cycle: the next step returns to iteration {back}'s parameters (the "
+                "gradient disagrees with the loss change: a noisy or non-smooth objective)")
             break
         u = new
     result.wall_time_s = time.perf_counter() - t_start
