@@ -12,7 +12,8 @@ The scenes are columns (aspect ratio ``a``; the column of the model's training d
 stride; ``--aspect-ratios`` with no value for none). For every scene and every
 true friction angle ``phi``, the observation is the MPM run at ``phi`` seen as the GNS
 sees it (nodes, frames); ``phi`` is then recovered from the observed final runout (soft
-maximum of the nodes' x, objective "runout") by the one inverse path of the package
+maximum of the nodes' x, objective "runout"; ``--objective deposit``: the final deposit
+profile) by the one inverse path of the package
 (:func:`diffgns.inverse.job.make_simulator`, :func:`~diffgns.inverse.job.make_objective`,
 :func:`~diffgns.inverse.job.solve`: Gauss-Newton on logit(phi / 90), exact gradients through
 the checkpointed rollout), through each simulator of ``--simulators``.
@@ -39,8 +40,11 @@ TARGET_DEG = {"gns": 1.0, "mpm": 0.5, "hybrid": 1.0}  # issue 21's tolerances
 
 
 def scene_label(row: dict) -> str:
-    """"column a=1.5" or the ``FAMILY:SEED`` of a random scene."""
-    return row.get("scene") or f"column a={float(row['aspect_ratio']):g}"
+    """"column a=1.5" or the ``FAMILY:SEED`` of a random scene, with the objective when it
+    is not the runout."""
+    label = row.get("scene") or f"column a={float(row['aspect_ratio']):g}"
+    obj = row.get("objective", "runout")
+    return label if obj == "runout" else f"{label} ({obj})"
 
 
 def key(row: dict) -> tuple:
@@ -81,6 +85,8 @@ def main(argv=None) -> None:
     ap.add_argument("--scenes", nargs="*", default=[], metavar="FAMILY:SEED",
                     help="random scenes of diffgns.scene.families (e.g. squares:5)")
     ap.add_argument("--frames", type=int, default=250, help="MPM frames of a random scene")
+    ap.add_argument("--objective", default="runout",
+                    help="diffgns.inverse.job objective (runout, deposit, ...)")
     ap.add_argument("--phis", type=float, nargs="+", default=[20, 25, 30, 35, 40, 45])
     ap.add_argument("--simulators", nargs="+", default=["gns"],
                     choices=["gns", "mpm", "hybrid"])
@@ -124,7 +130,9 @@ def main(argv=None) -> None:
     for label, fields, build in cases:
         col = None
         for phi in args.phis:
-            todo = [s for s in args.simulators if (s, label, float(phi)) not in done]
+            todo = [s for s in args.simulators
+                    if key(dict(simulator=s, **fields, objective=args.objective,
+                                true_phi=phi)) not in done]
             if not todo:
                 continue
             col = col or build()
@@ -137,14 +145,15 @@ def main(argv=None) -> None:
                 theta0 = {"friction_angle": start}
                 print(f"--- {sim_kind}: {label}, phi = {phi:g} (start {start:g}); "
                       f"observation {t_obs:.0f} s", flush=True)
-                row = dict(simulator=sim_kind, **fields, true_phi=phi, start_phi=start,
+                row = dict(simulator=sim_kind, **fields, objective=args.objective,
+                           true_phi=phi, start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
                            observation_s=t_obs)
                 t1 = time.perf_counter()
                 try:
                     sim = make_simulator(sim_kind, col, model, loaded=loaded,
                                          observed=observed, theta0=theta0)
-                    objective = make_objective("runout", col, observed=observed)
+                    objective = make_objective(args.objective, col, observed=observed)
                     tag = label.replace(" ", "_").replace(":", "_").replace("=", "")
                     s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
                               max_iter=args.max_iter, step_tol=args.step_tol,

@@ -117,8 +117,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             is smaller than this; the final theta is then the last evaluated one. A step
             back to an earlier iterate (within ``step_tol``) stops the loop unconverged with a
             "cycle" reason: the loop is deterministic, so the cycle would only repeat (seen
-            with Gauss-Newton on the MPM where the float32 gradient of a tall collapse is
-            noisy: its sign flips within 0.01 deg).
+            with Gauss-Newton on the MPM's runout of a tall collapse, a loss that is rough
+            on a 0.01 deg scale: its exact slope changes sign there, in float64 too).
         gradient: "ad" (value_and_grad, compiled ahead of time) or "fd" (central finite
             differences of the compiled loss in physical units, step
             :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``).
@@ -194,9 +194,11 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
                          tol)
         if back is not None:  # deterministic: the same points would follow again
+            were = ", ".join(f"{k}={result.history[back]['theta'][k]:.4g}" for k in u)
             result.stop_reason = (
-                f"cycle: the next step returns to iteration {back}'s parameters (the "
-                "gradient disagrees with the loss change: a noisy or non-smooth objective)")
+                f"cycle: the next step returns to iteration {back}'s parameters ({were}) from "
+                f"{', '.join(f'{k}={v:.4g}' for k, v in theta.items())}: the gradient "
+                "disagrees with the loss change (a noisy or non-smooth objective)")
             break
         u = new
     result.wall_time_s = time.perf_counter() - t_start

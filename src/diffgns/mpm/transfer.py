@@ -67,11 +67,15 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
-def _inverse_mass(m: jax.Array) -> jax.Array:
-    """1 / m where m > ``tiny`` (kg), else 0: a node no particle reaches, or one only the
-    vanishing corner of a stencil touches (weights ~1e-10 per axis), counts as empty."""
+def _velocity(grid: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(v (d, n_nodes), 1 / m (n_nodes,)): 1 / m where m > ``tiny`` (kg), else 0 (a node no
+    particle reaches, or one only the vanishing corner of a stencil touches, weights ~1e-10
+    per axis, counts as empty)."""
+    d = grid.shape[1] - 1
+    m = grid[:, d]
     ok = m > tiny(m.dtype)
-    return jnp.where(ok, 1.0 / jnp.where(ok, m, 1.0), 0.0)
+    inv = jnp.where(ok, 1.0 / jnp.where(ok, m, 1.0), 0.0)
+    return jnp.stack([grid[:, c] * inv for c in range(d)]), inv
 
 
 @jax.custom_jvp
@@ -86,17 +90,14 @@ def grid_velocity(grid: jax.Array) -> jax.Array:
     affine velocity). Found as a NaN gradient of an inverse sweep (column a = 2.5, phi = 45,
     frame 92 of gns_cg16_pfn's MPM, only under jit).
     """
-    d = grid.shape[1] - 1
-    inv = _inverse_mass(grid[:, d])
-    return jnp.stack([grid[:, c] * inv for c in range(d)])
+    return _velocity(grid)[0]
 
 
 @grid_velocity.defjvp
 def _grid_velocity_jvp(primals, tangents):
     (grid,), (dgrid,) = primals, tangents
     d = grid.shape[1] - 1
-    inv = _inverse_mass(grid[:, d])
-    v = jnp.stack([grid[:, c] * inv for c in range(d)])
+    v, inv = _velocity(grid)
     dv = jnp.stack([(dgrid[:, c] - v[c] * dgrid[:, d]) * inv for c in range(d)])
     return v, dv
 
