@@ -165,7 +165,7 @@ def test_sweep_time_step_survives_the_spin_pulse_at_the_highest_reynolds_number(
 def test_near_wall_ring_and_its_loss_weight():
     """The ring is the predicted nodes one mesh edge from a wall node; the weighted loss is
     the weighted node mean of the one-step errors (weight 1 = the unweighted loss)."""
-    from diffgns.mesh.meshnet import FLUID, near_wall
+    from diffgns.mesh.meshnet import near_wall
     from diffgns.mesh.stages import loss_weights
 
     pos, cells, types = _grid_mesh(6, 6)  # walls at rows j = 0 and 5
@@ -198,26 +198,31 @@ def test_near_wall_ring_and_its_loss_weight():
         want = (ww * e).sum() / (3 * ww.sum())
         got = unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=weight)
         np.testing.assert_allclose(float(got), want, rtol=1e-5)
-    assert (np.asarray(g.node_type)[ring] == FLUID).any()
-    assert float(unrolled_loss(model, params, g, v, p, key, 0.0)) == float(
-        unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=1.0))
+    # the weight changes the loss: the ring's errors differ from the others' on this data
+    assert abs(float(unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=4.0))
+               - float(unrolled_loss(model, params, g, v, p, key, 0.0))) > 1e-4
 
 
 def test_staged_training_starts_from_a_model_and_refuses_bad_options(tmp_path):
     """--init-from: the run starts at the model's params and keeps its normalisers (a step at
-    a vanishing learning rate leaves them); another configuration or a weight <= 0 is refused."""
+    a vanishing learning rate leaves them); another configuration or a weight <= 0 is refused.
+    The start model is trained by diffgns.mesh.train, whose normalisers fold its noise in, so
+    they differ from the ones the staged trainer would build from the data."""
     from diffgns.graph.fit import TrainConfig
     from diffgns.mesh.meshnet import MeshNetConfig
     from diffgns.mesh.stages import main, train_staged
-    from diffgns.mesh.train import load_model
+    from diffgns.mesh.train import load_model, train
 
     _synthetic_dataset(tmp_path / "d.h5")
-    cfg = MeshNetConfig(latent=8, mp_steps=1)
+    cfg = MeshNetConfig(latent=8, mp_steps=1, noise_std=0.05)
     tc = lambda lr: TrainConfig(steps=2, batch_size=1, lr=lr, lr_final=lr, log_every=1,
                                 checkpoint_every=1)
-    train_staged(tmp_path / "d.h5", tmp_path / "a", cfg, tc(1e-2), parse_stages("2:0.01:1"),
-                 progress=False)
+    train(tmp_path / "d.h5", tmp_path / "a", cfg, tc(1e-2), progress=False)
     start, p_start, _ = load_model(tmp_path / "a" / "model")
+    fresh, _ = train_staged(tmp_path / "d.h5", tmp_path / "f", cfg, tc(1e-12),
+                            parse_stages("2:0.0:1"), progress=False)
+    assert not np.allclose(np.asarray(fresh.stats.velocity.std),
+                           np.asarray(start.stats.velocity.std))
     _, p_b = train_staged(tmp_path / "d.h5", tmp_path / "b", cfg, tc(1e-12),
                           parse_stages("2:0.0:2"), progress=False, near_wall_weight=3.0,
                           init_from=tmp_path / "a" / "model")
