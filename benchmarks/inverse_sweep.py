@@ -95,6 +95,9 @@ def main(argv=None) -> None:
                          "35 deg instead)")
     ap.add_argument("--max-iter", type=int, default=20)
     ap.add_argument("--step-tol", type=float, default=0.01, help="deg")
+    ap.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
+                    help="diffgns.inverse.optimize's gradient (auto: AD, then differences "
+                         "over 1%% of phi once a step raises the loss)")
     ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -146,7 +149,7 @@ def main(argv=None) -> None:
                 print(f"--- {sim_kind}: {label}, phi = {phi:g} (start {start:g}); "
                       f"observation {t_obs:.0f} s", flush=True)
                 row = dict(simulator=sim_kind, **fields, objective=args.objective,
-                           true_phi=phi, start_phi=start,
+                           gradient=args.gradient, true_phi=phi, start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
                            observation_s=t_obs)
                 t1 = time.perf_counter()
@@ -157,7 +160,8 @@ def main(argv=None) -> None:
                     tag = label.replace(" ", "_").replace(":", "_").replace("=", "")
                     s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
                               max_iter=args.max_iter, step_tol=args.step_tol,
-                              observed=observed, truth=truth, label=sim_kind, t_start=t1)
+                              gradient=args.gradient, observed=observed, truth=truth,
+                              label=sim_kind, t_start=t1)
                     row.update(recovered_phi=s["recovered"]["friction_angle"],
                                error_deg=s["error_deg"], iterations=s["iterations"],
                                converged=s["converged"], stop_reason=s["stop_reason"],

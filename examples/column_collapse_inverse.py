@@ -60,8 +60,9 @@ def parse(argv=None):
                     help="gauss-newton: step scale (1); adam/sgd: learning rate on u = logit")
     ap.add_argument("--max-iter", type=int, default=20)
     ap.add_argument("--step-tol", type=float, default=0.01, help="stop below this step, deg")
-    ap.add_argument("--gradient", default="ad", choices=["ad", "fd"],
-                    help="ad: reverse mode; fd: central finite differences (comparison)")
+    ap.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
+                    help="ad: reverse mode; fd: central finite differences (comparison); "
+                    "auto: ad, differences once a step raises the loss")
     ap.add_argument("--block", type=int, default=None,
                     help="frames per jax.checkpoint block (default GNS/hybrid 10, MPM 25); "
                          "0 = none (the MPM still checkpoints its substeps)")

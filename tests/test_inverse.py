@@ -263,3 +263,46 @@ def test_a_step_back_to_an_earlier_iterate_stops_as_a_cycle():
                           {"friction_angle": 45.0}, inverse.make_optimizer("gauss-newton"),
                           max_iter=20, step_tol=0.01)
     assert ok.converged and abs(ok.theta["friction_angle"] - 30.0) < 0.01
+
+
+def _rough_loss(th):
+    """A misfit whose trend has its root at 30 deg and whose exact slope, from a ripple of
+    0.01 deg period, changes sign every 0.005 deg (amplitude 0.06/deg against the trend's
+    0.02/deg): AD is exact and misleading, as on the MPM's runout of a tall collapse."""
+    phi = th["friction_angle"]
+    return (0.02 * (phi - 30.0) + 2e-4 * jnp.sin(2 * jnp.pi * phi / 0.01)) ** 2
+
+
+def test_auto_gradient_turns_to_differences_where_the_exact_slope_misleads():
+    gn = inverse.make_optimizer("gauss-newton")
+    ad = inverse.optimize(_rough_loss, {"friction_angle": 45.0}, gn, max_iter=12,
+                          step_tol=0.01)
+    assert not ad.converged  # wanders on the ripple's slopes
+    auto = inverse.optimize(_rough_loss, {"friction_angle": 45.0}, gn, max_iter=12,
+                            step_tol=0.01, gradient="auto")
+    modes = [h["gradient"] for h in auto.history]
+    turn = modes.index("ad, then fd")
+    assert set(modes[:turn]) == {"ad"} and set(modes[turn + 1:]) == {"fd"}
+    assert auto.history[turn]["loss"] > auto.history[turn - 1]["loss"]  # the trigger
+    assert auto.converged and abs(auto.theta["friction_angle"] - 30.0) < 0.02
+    # on a smooth loss "auto" never turns and takes exactly the steps of "ad"
+    smooth = lambda th: (0.02 * (th["friction_angle"] - 30.0)) ** 2
+    a = inverse.optimize(smooth, {"friction_angle": 45.0}, gn, max_iter=20, step_tol=0.01)
+    b = inverse.optimize(smooth, {"friction_angle": 45.0}, gn, max_iter=20, step_tol=0.01,
+                         gradient="auto")
+    assert {h["gradient"] for h in b.history} == {"ad"}
+    assert a.series("theta", "friction_angle").tolist() == \
+        b.series("theta", "friction_angle").tolist()
+    with pytest.raises(ValueError, match="smooth_rel_step"):
+        inverse.optimize(smooth, {"friction_angle": 45.0}, gn, gradient="auto",
+                         smooth_rel_step=0.0)
+
+
+def test_an_unconverged_loop_returns_its_lowest_loss_iterate():
+    res = inverse.optimize(_rough_loss, {"friction_angle": 45.0},
+                           inverse.make_optimizer("gauss-newton"), max_iter=6, step_tol=0.01)
+    losses = res.series("loss")
+    best = int(np.argmin(losses))
+    assert not res.converged and best != len(losses) - 1
+    assert res.theta == res.history[best]["theta"]
+    assert f"returned iteration {best}" in res.stop_reason

@@ -109,6 +109,14 @@ def positive(text: str) -> float:
     return value
 
 
+def probability(text: str) -> float:
+    """argparse type: a number in [0, 1]."""
+    value = finite(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text} is not a probability; give 0 to 1")
+    return value
+
+
 def non_negative(text: str) -> float:
     """argparse type: a finite number >= 0 (noise levels, loss weights)."""
     value = finite(text)

@@ -200,8 +200,10 @@ def register(sub) -> None:
                    help="optimiser iterations at most, count (default 20)")
     p.add_argument("--step-tol", type=positive, default=0.01,
                    help="stop when every step is below this (parameter units)")
-    p.add_argument("--gradient", default="ad", choices=["ad", "fd"],
-                   help="ad: automatic differentiation; fd: finite differences (default ad)")
+    p.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
+                   help="ad: automatic differentiation; fd: finite differences; auto: ad "
+                   "until a step raises the loss or cycles (a loss rough below the step's "
+                   "scale), then differences over 1%% of each parameter (default auto)")
     p.add_argument("--block", type=int, default=None,
                    help="frames per jax.checkpoint block (default MPM 25, GNS/hybrid 10; 0: "
                    "none)")

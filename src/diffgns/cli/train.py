@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from diffgns.cli.checks import count, non_negative, positive
+from diffgns.cli.checks import count, non_negative, positive, probability
 from diffgns.io.files import check_input_file
 
 
@@ -58,7 +58,7 @@ def _train(args) -> int:
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
           frame_stride=args.frame_stride, init_from=args.init_from, pad_to=args.pad_nodes,
           family_weights=_weights(args.family_weights),
-          early_windows=_early_windows(args.early_windows))
+          early_windows=_early_windows(args.early_windows), mirror=args.mirror)
     from diffgns.distributed import is_main
 
     if is_main():
@@ -214,6 +214,10 @@ def register(sub) -> None:
                    help="particles: draw the windows that start in each trajectory's first "
                         "FRAMES (strided) frames WEIGHT times as often, e.g. 5:4 (a flow's "
                         "release from rest)")
+    t.add_argument("--mirror", type=probability, default=0.0, metavar="P",
+                   help="particles: reflect each training window about its box's vertical "
+                        "mid-plane with probability P (flows to both sides from one-sided "
+                        "data; default 0)")
     t.add_argument("--obstacle-features", action="store_true",
                    help="particles: give the network the distance and normal to the nearest "
                         "box obstacle (datasets that record obstacles, e.g. --kind granular)")

@@ -243,7 +243,8 @@ def _families(train_paths) -> list[str] | None:
 
 def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int = 1,
                  family_weights: dict | None = None,
-                 early_windows: tuple[int, float] | None = None) -> WindowSampler:
+                 early_windows: tuple[int, float] | None = None, mirror: float = 0.0
+                 ) -> WindowSampler:
     """The training windows: per scene family (equal weights unless ``family_weights``),
     node counts padded up to a multiple of ``pad_to`` (fewer compiled programs), when
     ``families`` names one per trajectory; else plain node-count groups. ``early_windows``
@@ -267,12 +268,12 @@ def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int 
 def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
           factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True,
           init_from=None, pad_to: int = 1, family_weights: dict | None = None,
-          early_windows: tuple[int, float] | None = None):
+          early_windows: tuple[int, float] | None = None, mirror: float = 0.0):
     """Train (or resume) a GNS; returns (gns, params).
 
     Datasets that record a scene family per trajectory (``diffgns dataset --kind
     granular``) are sampled per family (:func:`make_sampler`; ``pad_to``,
-    ``family_weights``; ``early_windows`` for any data); every window carries its
+    ``family_weights``; ``early_windows`` and ``mirror`` for any data); every window carries its
     trajectory's walls and obstacles (:mod:`diffgns.graph.geometry`).
 
     ``init_from``: a model folder whose parameters start a fresh run (fine-tuning, e.g. with
@@ -288,7 +289,8 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
         raise InputError("--valid", f"{valid_path} is {d}D but the training data are "
                          f"{gns.config.dim}D", f"validate on {gns.config.dim}D data")
     families = _families(train_paths)
-    sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights, early_windows)
+    sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights, early_windows,
+                           mirror)
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
@@ -307,7 +309,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
     info = dict(gns=dataclasses.asdict(gns.config), train=dataclasses.asdict(tcfg),
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source, pad_to=pad_to,
-                family_weights=family_weights, early_windows=early_windows,
+                family_weights=family_weights, early_windows=early_windows, mirror=mirror,
                 families=None if families is None else sorted(set(families)))
     if is_main():
         (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))

@@ -166,7 +166,7 @@ def recovered_line(theta: dict, truth: dict | None, label: str) -> str:
 def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
           transforms: dict | None = None, optimizer: str = "gauss-newton",
           lr: float | None = None, max_iter: int = 20, step_tol: float | dict = 0.01,
-          gradient: str = "ad", observed=None, truth: dict | None = None,
+          gradient: str = "auto", observed=None, truth: dict | None = None,
           label: str = "", fd_check: bool = False, extra: dict | None = None,
           t_start: float | None = None) -> dict:
     """Fit ``theta0`` with ``optimizer`` on ``objective(sim(theta))``; print, write, return.
@@ -178,7 +178,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         optimizer: "gauss-newton", "adam" or "sgd"; ``lr`` (default 1 for Gauss-Newton,
             0.1 otherwise) acts on the transformed parameters.
         step_tol: stop when every step is below this (physical units, float or by name).
-        gradient: "ad" or "fd".
+        gradient: "auto", "ad" or "fd" (:func:`diffgns.inverse.optimize`).
         observed: observed nodes (n_obs, n', 2) for the deposit figure (None: a runout).
         truth: the true parameters when known (figures, ``error``).
         label: the simulator's name for messages; ``extra``: more summary entries.

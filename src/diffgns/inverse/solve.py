@@ -101,7 +101,8 @@ def _revisits(history: list, theta: dict, tol: dict) -> int | None:
 def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransformation,
              max_iter: int = 20, transforms: dict | None = None, loss_tol: float = 0.0,
              step_tol: float | dict = 0.0, gradient: str = "ad", fd_rel_step: float = 1e-3,
-             has_aux: bool = False, on_overflow: Callable | None = None,
+             smooth_rel_step: float = 1e-2, has_aux: bool = False,
+             on_overflow: Callable | None = None,
              callback: Callable[[dict], None] | None = None) -> InverseResult:
     """Minimise ``loss_fn(theta)`` with ``optimizer`` over transformed parameters.
 
@@ -118,21 +119,34 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             back to an earlier iterate (within ``step_tol``) stops the loop unconverged with a
             "cycle" reason: the loop is deterministic, so the cycle would only repeat (seen
             with Gauss-Newton on the MPM's runout of a tall collapse, a loss that is rough
-            on a 0.01 deg scale: its exact slope changes sign there, in float64 too).
-        gradient: "ad" (value_and_grad, compiled ahead of time) or "fd" (central finite
+            on a 0.01 deg scale: its exact slope changes sign there, in float64 too). An
+            unconverged loop (cycle, max_iter) returns the iterate of the lowest loss.
+        gradient: "ad" (value_and_grad, compiled ahead of time), "fd" (central finite
             differences of the compiled loss in physical units, step
-            :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``).
+            :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``) or "auto": "ad"
+            until a step raises the loss or cycles, then central differences of step
+            ``smooth_rel_step`` from that iterate on (the record's ``gradient`` entry says
+            which; on a smooth loss the turn costs two forward runs per iteration and the
+            same minimum). The exact gradient of a loss that is rough on a scale far below the
+            step (the MPM's runout of a tall collapse: its slope changes sign within
+            0.01 deg) can point the wrong way; a difference over ``smooth_rel_step`` (0.45
+            deg at 45 deg) follows the trend. A second cycle, under differences, stops.
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
     Returns:
         InverseResult; history records: iteration, theta, loss, grad (d loss / d theta,
-        physical), grad_u (optimiser space), time_s, elapsed_s, rss_mb, peak_rss_mb, aux.
+        physical), grad_u (optimiser space), gradient ("ad", "fd" or, where "auto" turned,
+        "ad, then fd" with the differences in grad_u_fd), time_s, elapsed_s, rss_mb,
+        peak_rss_mb, aux.
     Raises:
         ValueError for an invalid start or option; FloatingPointError on a non-finite loss.
     """
-    if gradient not in ("ad", "fd"):
-        raise ValueError(f"gradient must be 'ad' or 'fd', got {gradient!r}")
+    if gradient not in ("ad", "fd", "auto"):
+        raise ValueError(f"gradient must be 'ad', 'fd' or 'auto', got {gradient!r}")
+    if not (fd_rel_step > 0 and smooth_rel_step > 0):
+        raise ValueError(f"fd_rel_step and smooth_rel_step must be > 0, got {fd_rel_step} "
+                         f"and {smooth_rel_step}")
     if max_iter < 0:
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
     tf, u, to_theta = setup(theta0, transforms)
@@ -142,40 +156,53 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
     result = InverseResult(theta=dict(theta0))
 
     exe = None
+    mode = "ad" if gradient == "auto" else gradient  # "auto" turns to "fd" at a cycle
+    rel_step = fd_rel_step if gradient == "fd" else smooth_rel_step
 
     def build():
         nonlocal exe
         f = lambda uu: full(to_theta(uu))
-        fn = jax.value_and_grad(f, has_aux=True) if gradient == "ad" else f
+        fn = jax.value_and_grad(f, has_aux=True) if mode == "ad" else f
         exe, info = compile_ahead(jax.jit(fn), u)
         result.compile_s += info["lower_s"] + info["compile_s"]
-        result.xla_memory = info["memory"]
+        if mode == "ad" or not result.xla_memory:
+            result.xla_memory = info["memory"]
 
-    def evaluate(u):
-        if gradient == "ad":
-            (loss, aux), g_u = exe(u)
-            return loss, aux, g_u
-        loss, aux = exe(u)
+    def differences(u, loss=None, aux=None):
+        """Central differences of the loss (forward program) in physical units, chained
+        to u; with the loss at u when it is not given."""
+        if loss is None:
+            loss, aux = exe(u)
         theta = to_theta(u)
         g_u = {}
-        for k in u:  # central differences in physical units, chained to u
+        for k in u:
             along = lambda x, k=k: exe(dict(u, **{k: jnp.asarray(tf[k].inverse(x, k),
                                                                  dtype)}))[0]
             x = float(theta[k])
-            g_theta = central_difference(along, x, fd_step(x, fd_rel_step, tf[k].lo, tf[k].hi))
+            g_theta = central_difference(along, x, fd_step(x, rel_step, tf[k].lo, tf[k].hi))
             g_u[k] = g_theta * jax.grad(tf[k].forward)(u[k])
         return loss, aux, g_u
+
+    def evaluate(u):
+        if mode == "ad":
+            (loss, aux), g_u = exe(u)
+            return loss, aux, g_u
+        return differences(u)
 
     build()
     state = optimizer.init(u)
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
+    best = None  # (loss, iteration, theta, aux) of the lowest loss so far
     for it in range(max_iter + 1):
         t0 = time.perf_counter()
         loss, aux, g_u = evaluate_redo(evaluate, build, on_overflow, to_theta, u, it)
         rec = record(it, tf, u, loss, g_u, aux, t0, t_start)
+        rec["gradient"] = mode
         loss, theta = rec["loss"], rec["theta"]
         result.history.append(rec)
         result.theta, result.aux = theta, aux
+        if best is None or loss < best[0]:
+            best = (loss, it, theta, aux)
         if callback:
             callback(rec)
         if loss <= loss_tol:
@@ -184,15 +211,29 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if it == max_iter:
             result.stop_reason = f"max_iter = {max_iter}"
             break
+        state0 = state
         updates, state = optimizer.update(g_u, state, u, value=jnp.asarray(loss))
         new = optax.apply_updates(u, updates)
+        back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
+                         tol)
+        rose = len(result.history) > 1 and loss > result.history[-2]["loss"]
+        if (back is not None or rose) and mode == "ad" and gradient == "auto":
+            # the exact gradient disagrees with the loss at the step's scale: from here on,
+            # differences over smooth_rel_step (the point's loss is not recomputed)
+            mode = "fd"
+            build()
+            _, _, g_u = differences(u, loss, aux)
+            rec["gradient"] = "ad, then fd"
+            rec["grad_u_fd"] = {k: float(v) for k, v in g_u.items()}
+            updates, state = optimizer.update(g_u, state0, u, value=jnp.asarray(loss))
+            new = optax.apply_updates(u, updates)
+            back = _revisits(result.history[:-1],
+                             {k: float(tf[k].forward(new[k])) for k in u}, tol)
         step = {k: abs(float(tf[k].forward(new[k])) - theta[k]) for k in u}
         if all(step[k] < tol.get(k, 0.0) for k in u):
             result.converged = True
             result.stop_reason = "step < step_tol"
             break
-        back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
-                         tol)
         if back is not None:  # deterministic: the same points would follow again
             were = ", ".join(f"{k}={result.history[back]['theta'][k]:.4g}" for k in u)
             result.stop_reason = (
@@ -201,5 +242,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                 "disagrees with the loss change (a noisy or non-smooth objective)")
             break
         u = new
+    if not result.converged and best is not None and best[1] != result.history[-1]["iteration"]:
+        _, it_best, result.theta, result.aux = best  # unconverged: the lowest loss seen
+        result.stop_reason += f"; returned iteration {it_best}, the lowest loss"
     result.wall_time_s = time.perf_counter() - t_start
     return result

@@ -63,7 +63,10 @@ class Scene:
     dt: float | None = None
     max_speed: float | None = None
     damping: float = 0.0
-    _cache: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
+    # init=False: dataclasses.replace gives the copy a fresh cache (a shared one returned the
+    # first scene's particles for the other)
+    _cache: dict = field(default_factory=dict, init=False, compare=False, hash=False,
+                         repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "bodies", tuple(self.bodies))
@@ -201,7 +204,7 @@ class Scene:
     def replace(self, **kw) -> Scene:
         from dataclasses import replace
 
-        return replace(self, _cache={}, **kw)
+        return replace(self, **kw)
 
 
 EFFECT_ORDER = ("elastic_linear", "elastic_corotated", "sand", "fluid")
