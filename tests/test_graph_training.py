@@ -416,3 +416,44 @@ def test_early_windows_option_is_parsed_and_rejected_with_a_message():
     for bad in ("5", "0:2", "5:0", "a:b", "5:inf"):
         with pytest.raises(InputError, match="--early-windows"):
             _early_windows(bad)
+
+
+def test_an_interrupted_run_writes_the_model_of_its_checkpoint_beside_it(tmp_path,
+                                                                         monkeypatch):
+    """SIGTERM part-way: the checkpoint and, to evaluate the run part-way, its model as
+    ``model_partial`` (never ``model``: a staged script takes ``model`` for a finished
+    stage); the same command then resumes to the end and writes ``model``."""
+    import os
+    import signal
+
+    import diffgns.graph.train_loop as tl
+    from diffgns.graph.fit import TrainingInterrupted
+
+    write_gns_npz(tmp_path / "train.npz", synthetic())
+    write_gns_npz(tmp_path / "valid.npz", synthetic(1, seed=5))
+    kw = dict(bounds=BOUNDS, radius=0.045, latent=16, mp_steps=1, mlp_layers=1,
+              noise_std=1e-4)
+    cfg = lambda steps: TrainConfig(steps=steps, batch_size=2, lr=3e-3, lr_final=3e-4,
+                                    lr_decay_steps=8, log_every=2, checkpoint_every=4,
+                                    validate_every=4, steps_per_call=1)
+    run = lambda out, steps: tl.train([tmp_path / "train.npz"], tmp_path / out, kw,
+                                      cfg(steps), valid_path=tmp_path / "valid.npz",
+                                      n_valid=1, progress=False)
+    real = tl.evaluate
+
+    def stop_at_first_validation(*a, **k):  # the signal arrives during step 4's validation
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(*a, **k)
+
+    monkeypatch.setattr(tl, "evaluate", stop_at_first_validation)
+    with pytest.raises(TrainingInterrupted):
+        run("b", 8)
+    monkeypatch.setattr(tl, "evaluate", real)
+    assert not (tmp_path / "b" / "model").exists()
+    g, p, info = tl.load_model(tmp_path / "b" / "model_partial")
+    assert info["partial"] is True and info["steps"] == 5  # stopped after the next step
+    _, at5 = run("a", 5)
+    for a, b in zip(jax.tree.leaves(at5), jax.tree.leaves(p)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    run("b", 8)
+    assert tl.load_model(tmp_path / "b" / "model")[2]["steps"] == 8

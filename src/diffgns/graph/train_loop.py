@@ -23,6 +23,7 @@ from flax import serialization
 
 from diffgns.distributed import barrier, is_main, to_host
 from diffgns.errors import InputError
+from diffgns.graph.checkpoints import load_checkpoint
 from diffgns.graph.data import (
     WindowSampler,
     check_one_dimension,
@@ -31,7 +32,7 @@ from diffgns.graph.data import (
 )
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
-from diffgns.graph.fit import TrainConfig, fit, has_checkpoint, step_rng
+from diffgns.graph.fit import TrainConfig, TrainingInterrupted, fit, has_checkpoint, step_rng
 from diffgns.graph.geometry import obstacle_array
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.sampling import FamilyWindowSampler
@@ -347,10 +348,18 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
         return params, opt_state, (losses,)
 
     validate = (lambda p: evaluate(gns, p, valid)["mean"]) if valid else None
-    params, opt_state, step = fit(
-        update, params, trainer.opt.init(params), tcfg, out, info, ["loss"], desc="train",
-        progress=progress, validate=validate, host_state=nbrs, update_many=update_many,
-        show=("runout_rel_error", "final_position_error_rel_displacement"))
+    opt_state = trainer.opt.init(params)
+    try:
+        params, opt_state, step = fit(
+            update, params, opt_state, tcfg, out, info, ["loss"], desc="train",
+            progress=progress, validate=validate, host_state=nbrs, update_many=update_many,
+            show=("runout_rel_error", "final_position_error_rel_displacement"))
+    except TrainingInterrupted as e:  # SIGTERM/SIGINT: also the model of the checkpoint
+        if is_main():  # (to evaluate a run part-way; the same command resumes it)
+            params, _, step = load_checkpoint(e.checkpoint, params, opt_state)
+            save_model(out / "model_partial", gns, to_host(params),
+                       dict(info, steps=step, partial=True))
+        raise
     params = to_host(params)
     if is_main():
         save_model(out / "model", gns, params, dict(info, steps=step))
