@@ -123,3 +123,20 @@ def test_a_replaced_scene_never_shares_the_particles_of_the_first():
     assert not np.allclose(np.sort(xm[:, 0]), np.sort(xs[:, 0]))
     b = moved.bodies[0].shape
     assert (xm[:, 0] > b.x0).all() and (xm[:, 0] < b.x1).all()
+
+
+@pytest.mark.parametrize("families", [None, ["squares"]])
+def test_training_passes_the_mirror_probability_to_its_sampler(families):
+    """The option reaches the sampler of ``train`` on plain and on family data (a first
+    version dropped it on the way: a run with --mirror 0.5 drew unreflected windows)."""
+    from types import SimpleNamespace
+
+    from diffgns.graph.fit import TrainConfig
+    from diffgns.graph.train_loop import make_sampler
+
+    gns = SimpleNamespace(config=SimpleNamespace(history=5, bounds=BOX, radius=0.05))
+    s = make_sampler(gns, _trajs(), TrainConfig(), families, mirror=0.5)
+    assert s.mirror == 0.5
+    rng = np.random.default_rng(0)
+    flipped = [float(s.sample(rng, 1)["obstacles"][0, 0, 0]) < 0.28 for _ in range(100)]
+    assert 20 < sum(flipped) < 80

@@ -250,9 +250,11 @@ def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int 
     node counts padded up to a multiple of ``pad_to`` (fewer compiled programs), when
     ``families`` names one per trajectory; else plain node-count groups. ``early_windows``
     ``(frames, weight)``: windows starting in each trajectory's first ``frames`` (strided)
-    frames drawn ``weight`` times as often (:class:`WindowSampler`)."""
+    frames drawn ``weight`` times as often (:class:`WindowSampler`); ``mirror``: probability
+    of reflecting a window about its box's vertical mid-plane
+    (:func:`~diffgns.graph.data.mirror_window`)."""
     frames, weight = early_windows or (0, 1.0)
-    early = dict(early_frames=int(frames), early_weight=float(weight))
+    early = dict(early_frames=int(frames), early_weight=float(weight), mirror=float(mirror))
     if families is None:
         if pad_to > 1 or family_weights:
             raise InputError("--pad-nodes/--family-weights", "the training data records no "
