@@ -124,21 +124,22 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         gradient: "ad" (value_and_grad, compiled ahead of time), "fd" (central finite
             differences of the compiled loss in physical units, step
             :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``) or "auto": "ad"
-            until a step raises the loss or cycles, then central differences of step
-            ``smooth_rel_step`` from that iterate on (the record's ``gradient`` entry says
-            which; on a smooth loss the turn costs two forward runs per iteration and the
-            same minimum). The exact gradient of a loss that is rough on a scale far below the
-            step (the MPM's runout of a tall collapse: its slope changes sign within
-            0.01 deg) can point the wrong way; a difference over ``smooth_rel_step`` (0.45
+            until a step raises the loss above the lowest so far or cycles; then the
+            optimiser restarts from the lowest-loss iterate with central differences of step
+            ``smooth_rel_step`` from there on (records: ``gradient`` says which; the
+            iteration where it turned has ``turn``, with the restart iteration and the
+            differences ``grad_u_fd``). On a smooth loss a turn costs two forward runs per
+            iteration and ends at the same minimum. The exact gradient of a loss that is
+            rough on a scale far below the step (the MPM's runout of a tall collapse: its
+            slope changes sign within 0.01 deg) can point the wrong way; a difference over ``smooth_rel_step`` (0.45
             deg at 45 deg) follows the trend. A second cycle, under differences, stops.
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
     Returns:
         InverseResult; history records: iteration, theta, loss, grad (d loss / d theta,
-        physical), grad_u (optimiser space), gradient ("ad", "fd" or, where "auto" turned,
-        "ad, then fd" with the differences in grad_u_fd), time_s, elapsed_s, rss_mb,
-        peak_rss_mb, aux.
+        physical), grad_u (optimiser space), gradient ("ad" or "fd"; see "auto" for
+        ``turn``), time_s, elapsed_s, rss_mb, peak_rss_mb, aux.
     Raises:
         ValueError for an invalid start or option; FloatingPointError on a non-finite loss.
     """
@@ -192,7 +193,7 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
     build()
     state = optimizer.init(u)
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
-    best = None  # (loss, iteration, theta, aux) of the lowest loss so far
+    best = None  # (loss, iteration, theta, aux, u) of the lowest loss so far
     for it in range(max_iter + 1):
         t0 = time.perf_counter()
         loss, aux, g_u = evaluate_redo(evaluate, build, on_overflow, to_theta, u, it)
@@ -202,7 +203,7 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         result.history.append(rec)
         result.theta, result.aux = theta, aux
         if best is None or loss < best[0]:
-            best = (loss, it, theta, aux)
+            best = (loss, it, theta, aux, u)
         if callback:
             callback(rec)
         if loss <= loss_tol:
@@ -211,25 +212,29 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if it == max_iter:
             result.stop_reason = f"max_iter = {max_iter}"
             break
-        state0 = state
         updates, state = optimizer.update(g_u, state, u, value=jnp.asarray(loss))
         new = optax.apply_updates(u, updates)
         back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
                          tol)
-        rose = len(result.history) > 1 and loss > result.history[-2]["loss"]
+        rose = loss > best[0]
+        start = theta  # the point the step is taken from
         if (back is not None or rose) and mode == "ad" and gradient == "auto":
             # the exact gradient disagrees with the loss at the step's scale: from here on,
-            # differences over smooth_rel_step (the point's loss is not recomputed)
+            # differences over smooth_rel_step, restarting the optimiser from the lowest-loss
+            # iterate (whose loss is known; its exact slope may be what misled)
             mode = "fd"
             build()
-            _, _, g_u = differences(u, loss, aux)
-            rec["gradient"] = "ad, then fd"
-            rec["grad_u_fd"] = {k: float(v) for k, v in g_u.items()}
-            updates, state = optimizer.update(g_u, state0, u, value=jnp.asarray(loss))
-            new = optax.apply_updates(u, updates)
-            back = _revisits(result.history[:-1],
-                             {k: float(tf[k].forward(new[k])) for k in u}, tol)
-        step = {k: abs(float(tf[k].forward(new[k])) - theta[k]) for k in u}
+            loss_b, it_b, start, aux_b, u_b = best
+            _, _, g_b = differences(u_b, loss_b, aux_b)
+            rec["turn"] = dict(restart_iteration=it_b,
+                               grad_u_fd={k: float(v) for k, v in g_b.items()})
+            state = optimizer.init(u_b)
+            updates, state = optimizer.update(g_b, state, u_b, value=jnp.asarray(loss_b))
+            new = optax.apply_updates(u_b, updates)
+            back = _revisits(result.history, {k: float(tf[k].forward(new[k])) for k in u},
+                             tol)
+            result.theta, result.aux = start, aux_b
+        step = {k: abs(float(tf[k].forward(new[k])) - start[k]) for k in u}
         if all(step[k] < tol.get(k, 0.0) for k in u):
             result.converged = True
             result.stop_reason = "step < step_tol"
@@ -238,12 +243,12 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             were = ", ".join(f"{k}={result.history[back]['theta'][k]:.4g}" for k in u)
             result.stop_reason = (
                 f"cycle: the next step returns to iteration {back}'s parameters ({were}) from "
-                f"{', '.join(f'{k}={v:.4g}' for k, v in theta.items())}: the gradient "
+                f"{', '.join(f'{k}={v:.4g}' for k, v in start.items())}: the gradient "
                 "disagrees with the loss change (a noisy or non-smooth objective)")
             break
         u = new
     if not result.converged and best is not None and best[1] != result.history[-1]["iteration"]:
-        _, it_best, result.theta, result.aux = best  # unconverged: the lowest loss seen
+        _, it_best, result.theta, result.aux, _ = best  # unconverged: the lowest loss seen
         result.stop_reason += f"; returned iteration {it_best}, the lowest loss"
     result.wall_time_s = time.perf_counter() - t_start
     return result
