@@ -131,8 +131,9 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             differences ``grad_u_fd``). On a smooth loss a turn costs two forward runs per
             iteration and ends at the same minimum. The exact gradient of a loss that is
             rough on a scale far below the step (the MPM's runout of a tall collapse: its
-            slope changes sign within 0.01 deg) can point the wrong way; a difference over ``smooth_rel_step`` (0.45
-            deg at 45 deg) follows the trend. A second cycle, under differences, stops.
+            slope changes sign within 0.01 deg) can point the wrong way; a difference over
+            ``smooth_rel_step`` (0.45 deg at 45 deg) follows the trend. A second cycle,
+            under differences, stops.
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
