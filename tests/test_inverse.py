@@ -264,7 +264,7 @@ def test_a_step_back_to_an_earlier_iterate_stops_as_a_cycle():
     auto = inverse.optimize(lambda th: residual(th["friction_angle"]) ** 2,
                             {"friction_angle": 45.0}, inverse.make_optimizer("gauss-newton"),
                             max_iter=20, step_tol=0.01, gradient="auto")
-    assert auto.history[1]["turn"]["restart_iteration"] == 0
+    assert auto.history[1]["rejected"]["restart_iteration"] == 0
     assert auto.history[2]["theta"]["friction_angle"] < 45.0
     assert auto.converged and abs(auto.theta["friction_angle"] - 30.0) < 0.01
     ok = inverse.optimize(lambda th: (0.02 * (th["friction_angle"] - 30.0)) ** 2,
@@ -289,11 +289,11 @@ def test_auto_gradient_turns_to_differences_where_the_exact_slope_misleads():
     auto = inverse.optimize(_rough_loss, {"friction_angle": 45.0}, gn, max_iter=12,
                             step_tol=0.01, gradient="auto")
     modes = [h["gradient"] for h in auto.history]
-    turn = next(i for i, h in enumerate(auto.history) if "turn" in h)
+    turn = next(i for i, h in enumerate(auto.history) if "rejected" in h)
     assert set(modes[:turn + 1]) == {"ad"} and set(modes[turn + 1:]) == {"fd"}
     losses = auto.series("loss")
     assert losses[turn] > losses[:turn].min()  # the trigger: the loss rose
-    j = auto.history[turn]["turn"]["restart_iteration"]
+    j = auto.history[turn]["rejected"]["restart_iteration"]
     assert losses[j] == losses[:turn + 1].min()  # restarted from the lowest-loss iterate
     phi = auto.series("theta", "friction_angle")
     assert np.sign(phi[turn + 1] - phi[j]) == np.sign(30.0 - phi[j])  # trend, not ripple
@@ -319,3 +319,40 @@ def test_an_unconverged_loop_returns_its_lowest_loss_iterate():
     assert not res.converged and best != len(losses) - 1
     assert res.theta == res.history[best]["theta"]
     assert f"returned iteration {best}" in res.stop_reason
+
+
+def test_auto_rejects_an_overshoot_and_shrinks_the_step_instead_of_cycling():
+    """A loss with a floor (the model cannot fit every residual) and a steep rise below the
+    truth (20 deg), as the deposit of a thrown square through the MPM: Gauss-Newton's
+    clipped step goes 45 -> 24.2 -> 10.7 (loss 14x higher) and back to 24.2, a cycle.
+    "auto" rejects the overshoot, halves its step from the best iterate until the loss
+    falls, never repeats a point, and ends at the minimum."""
+    def loss(th):
+        phi = th["friction_angle"]
+        return 2e-4 * (phi - 20.0) ** 2 + 0.02 + 0.01 * jnp.maximum(20.0 - phi, 0.0) ** 1.5
+
+    gn = inverse.make_optimizer("gauss-newton")
+    ad = inverse.optimize(loss, {"friction_angle": 45.0}, gn, max_iter=30, step_tol=0.01)
+    assert ad.stop_reason.startswith("cycle")
+    auto = inverse.optimize(loss, {"friction_angle": 45.0}, gn, max_iter=30, step_tol=0.01,
+                            gradient="auto")
+    phi = auto.series("theta", "friction_angle")
+    rejected = [i for i, h in enumerate(auto.history) if "rejected" in h]
+    assert phi[rejected[0]] < 15.0  # the overshoot was evaluated, then refused
+    radii = [auto.history[i]["rejected"]["radius_u"] for i in rejected]
+    assert radii[0] == 0.5 and all(b < a for a, b in zip(radii, radii[1:]))
+    assert len({round(p, 6) for p in phi}) == len(phi)  # no point evaluated twice
+    assert auto.converged and abs(auto.theta["friction_angle"] - 20.0) < 0.1
+
+
+def test_auto_with_no_step_tolerance_still_stops():
+    """step_tol = 0 (the default): the shrinking of a rejected step cannot end on a small
+    step; it ends on a cycle or at max_iter, in bounded time."""
+    def loss(th):
+        phi = th["friction_angle"]
+        return 2e-4 * (phi - 20.0) ** 2 + 0.02 + 0.01 * jnp.maximum(20.0 - phi, 0.0) ** 1.5
+
+    res = inverse.optimize(loss, {"friction_angle": 45.0},
+                           inverse.make_optimizer("gauss-newton"), max_iter=40,
+                           gradient="auto")
+    assert len(res.history) <= 41 and abs(res.theta["friction_angle"] - 20.0) < 0.5

@@ -123,13 +123,17 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             unconverged loop (cycle, max_iter) returns the iterate of the lowest loss.
         gradient: "ad" (value_and_grad, compiled ahead of time), "fd" (central finite
             differences of the compiled loss in physical units, step
-            :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``) or "auto": "ad"
-            until a step raises the loss above the lowest so far or cycles; then the
-            optimiser restarts from the lowest-loss iterate with central differences of step
-            ``smooth_rel_step`` from there on (records: ``gradient`` says which; the
-            iteration where it turned has ``turn``, with the restart iteration and the
-            differences ``grad_u_fd``). On a smooth loss a turn costs two forward runs per
-            iteration and ends at the same minimum. The exact gradient of a loss that is
+            :func:`~diffgns.inverse.gradients.fd_step` of ``fd_rel_step``) or "auto", a
+            trust-region safeguard: "ad" until a step raises the loss above the lowest so
+            far (or leads back to an earlier iterate); such a step is rejected, the optimiser
+            restarts from the lowest-loss iterate with central differences of step
+            ``smooth_rel_step`` (from then on) and each step in u is clipped to half the
+            rejected one, halved again while it would land on an iterate already evaluated;
+            an accepted step doubles that radius. It ends when a step is below
+            ``step_tol`` (or at ``max_iter``), never on a cycle. Records: ``gradient`` says
+            which; a rejected iterate has ``rejected`` (restart iteration, radius, the
+            differences at the restart point). On a smooth loss that never rises, "auto"
+            takes exactly the steps of "ad". The exact gradient of a loss that is
             rough on a scale far below the step (the MPM's runout of a tall collapse: its
             slope changes sign within 0.01 deg) can point the wrong way; a difference over
             ``smooth_rel_step`` (0.45 deg at 45 deg) follows the trend. A second cycle,
@@ -194,7 +198,16 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
     build()
     state = optimizer.init(u)
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
-    best = None  # (loss, iteration, theta, aux, u) of the lowest loss so far
+    best = None  # dict(loss, it, theta, aux, u, g_u, mode) of the lowest loss so far
+    radius = math.inf  # "auto": trust radius on each step in u, set by the first rejection
+
+    def propose(g, st, uu, value):
+        """The optimiser's step from ``uu``, each component clipped to ``radius``."""
+        upd, st = optimizer.update(g, st, uu, value=jnp.asarray(value))
+        if math.isfinite(radius):
+            upd = jax.tree.map(lambda d: jnp.clip(d, -radius, radius), upd)
+        return optax.apply_updates(uu, upd), st
+
     for it in range(max_iter + 1):
         t0 = time.perf_counter()
         loss, aux, g_u = evaluate_redo(evaluate, build, on_overflow, to_theta, u, it)
@@ -203,8 +216,11 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         loss, theta = rec["loss"], rec["theta"]
         result.history.append(rec)
         result.theta, result.aux = theta, aux
-        if best is None or loss < best[0]:
-            best = (loss, it, theta, aux, u)
+        rose = best is not None and loss > best["loss"]
+        if not rose:
+            if best is not None and math.isfinite(radius):
+                radius *= 2.0  # an accepted step: widen the trust region again
+            best = dict(loss=loss, it=it, theta=theta, aux=aux, u=u, g_u=g_u, mode=mode)
         if callback:
             callback(rec)
         if loss <= loss_tol:
@@ -213,28 +229,38 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if it == max_iter:
             result.stop_reason = f"max_iter = {max_iter}"
             break
-        updates, state = optimizer.update(g_u, state, u, value=jnp.asarray(loss))
-        new = optax.apply_updates(u, updates)
+        new, state = propose(g_u, state, u, loss)
         back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
                          tol)
-        rose = loss > best[0]
         start = theta  # the point the step is taken from
-        if (back is not None or rose) and mode == "ad" and gradient == "auto":
-            # the exact gradient disagrees with the loss at the step's scale: from here on,
-            # differences over smooth_rel_step, restarting the optimiser from the lowest-loss
-            # iterate (whose loss is known; its exact slope may be what misled)
-            mode = "fd"
-            build()
-            loss_b, it_b, start, aux_b, u_b = best
-            _, _, g_b = differences(u_b, loss_b, aux_b)
-            rec["turn"] = dict(restart_iteration=it_b,
-                               grad_u_fd={k: float(v) for k, v in g_b.items()})
-            state = optimizer.init(u_b)
-            updates, state = optimizer.update(g_b, state, u_b, value=jnp.asarray(loss_b))
-            new = optax.apply_updates(u_b, updates)
-            back = _revisits(result.history, {k: float(tf[k].forward(new[k])) for k in u},
-                             tol)
-            result.theta, result.aux = start, aux_b
+        if gradient == "auto" and (rose or back is not None):
+            # the step raised the loss (or leads back to a point no better): reject it. From
+            # the lowest-loss iterate, with differences over smooth_rel_step (the exact slope
+            # may be what misled: a loss rough below the step's scale) and a trust radius of
+            # half the rejected step in u, halved again while the step would land on an
+            # iterate already evaluated (its loss is known to be no lower)
+            if mode == "ad":
+                mode = "fd"
+                build()
+            if best["mode"] != "fd":  # differences at the best point (its loss is known)
+                best["g_u"] = differences(best["u"], best["loss"], best["aux"])[2]
+                best["mode"] = "fd"
+            start = best["theta"]
+            taken = max(abs(float(u[k]) - float(best["u"][k])) for k in u)
+            radius = min(radius, 0.5 * taken) if taken > 0 else radius
+            for _ in range(60):  # 2^-60: with step_tol = 0 a cycle stop ends it
+                state = optimizer.init(best["u"])
+                new, state = propose(best["g_u"], state, best["u"], best["loss"])
+                back = _revisits(result.history,
+                                 {k: float(tf[k].forward(new[k])) for k in u}, tol)
+                small = all(abs(float(tf[k].forward(new[k])) - start[k]) < tol.get(k, 0.0)
+                            for k in u)
+                if back is None or small:
+                    break
+                radius = 0.5 * max(abs(float(new[k]) - float(best["u"][k])) for k in u)
+            rec["rejected"] = dict(restart_iteration=best["it"], radius_u=radius,
+                                   grad_u_fd={k: float(v) for k, v in best["g_u"].items()})
+            result.theta, result.aux = best["theta"], best["aux"]
         step = {k: abs(float(tf[k].forward(new[k])) - start[k]) for k in u}
         if all(step[k] < tol.get(k, 0.0) for k in u):
             result.converged = True
@@ -248,8 +274,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                 "disagrees with the loss change (a noisy or non-smooth objective)")
             break
         u = new
-    if not result.converged and best is not None and best[1] != result.history[-1]["iteration"]:
-        _, it_best, result.theta, result.aux, _ = best  # unconverged: the lowest loss seen
-        result.stop_reason += f"; returned iteration {it_best}, the lowest loss"
+    if not result.converged and best is not None and best["it"] != result.history[-1]["iteration"]:
+        result.theta, result.aux = best["theta"], best["aux"]  # unconverged: the lowest loss
+        result.stop_reason += f"; returned iteration {best['it']}, the lowest loss"
     result.wall_time_s = time.perf_counter() - t_start
     return result
