@@ -97,6 +97,25 @@ def test_huber_loss_is_the_mse_inside_delta_and_linear_beyond():
         TrainConfig(huber_delta=-1.0)
 
 
+def test_target_scaled_loss_is_the_relative_error_with_a_floor():
+    """Each window's loss over (its mean squared normalised target + floor); the scale is a
+    constant of the window (no gradient through it), so the gradient is the plain one
+    divided by it."""
+    args, target = _zero_network_window()
+    gns, params = args[0], args[1]
+    ms = float(jnp.mean(jnp.sum(target**2, -1)))
+    for floor in (1.0, 0.25):
+        scaled = float(window_loss(*args, target_scale_floor=floor)[0])
+        assert scaled == pytest.approx(ms / (ms + floor), rel=1e-4)
+    g0 = jax.grad(lambda p: window_loss(gns, p, *args[2:])[0])(params)
+    g1 = jax.grad(lambda p: window_loss(gns, p, *args[2:], target_scale_floor=1.0)[0])(params)
+    for a, b in zip(jax.tree.leaves(g0), jax.tree.leaves(g1)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a) / (ms + 1.0), rtol=2e-4,
+                                   atol=1e-9)
+    with pytest.raises(ValueError, match="target_scale_floor"):
+        TrainConfig(target_scale_floor=-1.0)
+
+
 def test_push_forward_target_corrects_velocity_not_position():
     trajs = synthetic(1)
     w = trajs[0].positions[:9]  # history 5, 2 pushed frames, 1 target frame

@@ -49,7 +49,8 @@ def _train(args) -> int:
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
                        push_forward=args.push_forward, momentum_weight=args.momentum_weight,
-                       huber_delta=args.huber_delta, seed=args.seed,
+                       huber_delta=args.huber_delta,
+                       target_scale_floor=args.target_scale_floor, seed=args.seed,
                        validate_every=args.validate_every, checkpoint_every=args.checkpoint_every,
                        steps_per_call=args.steps_per_call or TrainConfig.steps_per_call)
     gns_kw = dict(radius=args.radius, latent=args.latent, mp_steps=args.mp_steps,
@@ -195,6 +196,10 @@ def register(sub) -> None:
     t.add_argument("--huber-delta", type=non_negative, default=0.0,
                    help="particles: Huber loss on the normalised acceleration, linear beyond "
                    "this many standard deviations per component; 0 = MSE (default 0)")
+    t.add_argument("--target-scale-floor", type=non_negative, default=0.0, metavar="F",
+                   help="particles: divide each window's loss by its mean squared normalised "
+                   "target + F (a relative error: impacts and slow flow weigh alike); "
+                   "0 = off (default 0)")
     t.add_argument("--seed", type=int, default=0, help="random seed, integer (default 0)")
     t.add_argument("--validate-every", type=count, default=2000,
                    help="steps between validation rollouts, count (default 2000)")

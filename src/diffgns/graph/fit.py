@@ -86,6 +86,11 @@ class TrainConfig:
         huber_delta: GNS only: 0 for the MSE of the normalised acceleration; > 0 for the
             Huber loss, linear beyond this many standard deviations per component
             (:func:`diffgns.graph.training.window_loss`).
+        target_scale_floor: GNS only: 0 for the plain loss; > 0 divides each window's loss
+            by (its mean squared normalised target acceleration + this floor), so windows
+            of violent impacts (targets of ~100 standard deviations) and of slow frictional
+            flow weigh alike in a batch and in Adam's moment estimates
+            (:func:`diffgns.graph.training.window_loss`).
         seed: seed of every random draw (:func:`step_rng`).
         log_every, validate_every, checkpoint_every: periods in steps of :func:`fit`.
         steps_per_call: optimiser steps per device call when the network provides
@@ -104,6 +109,7 @@ class TrainConfig:
     push_forward: int = 0
     momentum_weight: float = 0.0
     huber_delta: float = 0.0
+    target_scale_floor: float = 0.0
     seed: int = 0
     log_every: int = 50
     validate_every: int = 2000
@@ -113,6 +119,9 @@ class TrainConfig:
     def __post_init__(self):
         if not self.huber_delta >= 0:
             raise ValueError(f"huber_delta must be >= 0, got {self.huber_delta}")
+        if not (self.target_scale_floor >= 0 and self.target_scale_floor < float("inf")):
+            raise ValueError(f"target_scale_floor must be a finite number >= 0, got "
+                             f"{self.target_scale_floor}")
         if self.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be >= 1, got {self.steps_per_call}")
 
