@@ -130,14 +130,15 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             ``smooth_rel_step`` (from then on) and each step in u is clipped to half the
             rejected one, halved again while it would land on an iterate already evaluated;
             an accepted step doubles that radius. It ends when a step is below
-            ``step_tol`` (or at ``max_iter``), never on a cycle. Records: ``gradient`` says
-            which; a rejected iterate has ``rejected`` (restart iteration, radius, the
-            differences at the restart point). On a smooth loss that never rises, "auto"
-            takes exactly the steps of "ad". The exact gradient of a loss that is
-            rough on a scale far below the step (the MPM's runout of a tall collapse: its
-            slope changes sign within 0.01 deg) can point the wrong way; a difference over
-            ``smooth_rel_step`` (0.45 deg at 45 deg) follows the trend. A second cycle,
-            under differences, stops.
+            ``step_tol`` or at ``max_iter`` (on a cycle only if ``step_tol`` is 0).
+            Records: ``gradient`` says which; an iterate whose loss rose, or whose proposed
+            step would revisit a point, has ``rejected`` (restart iteration, radius, the
+            differences there). On a loss that never rises, "auto" takes exactly the steps
+            of "ad". Why: the exact gradient of a loss that is rough on a scale far below
+            the step (the MPM's runout of a tall collapse: its slope changes sign within
+            0.01 deg) can point the wrong way, where a difference over ``smooth_rel_step``
+            (0.45 deg at 45 deg) follows the trend; and Gauss-Newton's step overshoots a
+            loss whose minimum is above zero (a deposit the model cannot match exactly).
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
@@ -162,7 +163,7 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
     result = InverseResult(theta=dict(theta0))
 
     exe = None
-    mode = "ad" if gradient == "auto" else gradient  # "auto" turns to "fd" at a cycle
+    mode = "ad" if gradient == "auto" else gradient  # "auto" turns to "fd" at a rejection
     rel_step = fd_rel_step if gradient == "fd" else smooth_rel_step
 
     def build():
