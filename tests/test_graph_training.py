@@ -293,21 +293,29 @@ def test_average_models_is_the_elementwise_mean_of_compatible_models(tmp_path):
         average_models([tmp_path / "a", tmp_path / "mesh"], tmp_path / "x")
 
 
-def test_train_run_resumes_validates_and_writes_a_loadable_model(tmp_path):
-    """train(): the GNS run on the shared loop; stopped at a checkpoint and resumed it ends
-    where an uninterrupted run does, with the validation log and a model folder."""
-    from diffgns.graph.train_loop import load_model, train
+def _small_run(tmp_path, **cfg):
+    """``run(out, steps)``: train() of a tiny GNS on synthetic data (validated on one
+    trajectory) into ``tmp_path / out``; ``cfg`` adds TrainConfig fields."""
+    from diffgns.graph import train_loop
 
     write_gns_npz(tmp_path / "train.npz", synthetic())
     write_gns_npz(tmp_path / "valid.npz", synthetic(1, seed=5))
     kw = dict(bounds=BOUNDS, radius=0.045, latent=16, mp_steps=1, mlp_layers=1,
               noise_std=1e-4)
-    cfg = lambda steps: TrainConfig(steps=steps, batch_size=2, lr=3e-3, lr_final=3e-4,
-                                    lr_decay_steps=8, log_every=2, checkpoint_every=4,
-                                    validate_every=4)
-    run = lambda out, steps: train([tmp_path / "train.npz"], tmp_path / out, kw, cfg(steps),
-                                   valid_path=tmp_path / "valid.npz", n_valid=1,
-                                   progress=False)
+    tcfg = lambda steps: TrainConfig(steps=steps, batch_size=2, lr=3e-3, lr_final=3e-4,
+                                     lr_decay_steps=8, log_every=2, checkpoint_every=4,
+                                     validate_every=4, **cfg)
+    return lambda out, steps: train_loop.train(
+        [tmp_path / "train.npz"], tmp_path / out, kw, tcfg(steps),
+        valid_path=tmp_path / "valid.npz", n_valid=1, progress=False)
+
+
+def test_train_run_resumes_validates_and_writes_a_loadable_model(tmp_path):
+    """train(): the GNS run on the shared loop; stopped at a checkpoint and resumed it ends
+    where an uninterrupted run does, with the validation log and a model folder."""
+    from diffgns.graph.train_loop import load_model
+
+    run = _small_run(tmp_path)
     _, straight = run("a", 8)
     run("b", 4)
     gns, resumed = run("b", 8)
@@ -448,16 +456,7 @@ def test_an_interrupted_run_writes_the_model_of_its_checkpoint_beside_it(tmp_pat
     import diffgns.graph.train_loop as tl
     from diffgns.graph.fit import TrainingInterrupted
 
-    write_gns_npz(tmp_path / "train.npz", synthetic())
-    write_gns_npz(tmp_path / "valid.npz", synthetic(1, seed=5))
-    kw = dict(bounds=BOUNDS, radius=0.045, latent=16, mp_steps=1, mlp_layers=1,
-              noise_std=1e-4)
-    cfg = lambda steps: TrainConfig(steps=steps, batch_size=2, lr=3e-3, lr_final=3e-4,
-                                    lr_decay_steps=8, log_every=2, checkpoint_every=4,
-                                    validate_every=4, steps_per_call=1)
-    run = lambda out, steps: tl.train([tmp_path / "train.npz"], tmp_path / out, kw,
-                                      cfg(steps), valid_path=tmp_path / "valid.npz",
-                                      n_valid=1, progress=False)
+    run = _small_run(tmp_path, steps_per_call=1)
     real = tl.evaluate
 
     def stop_at_first_validation(*a, **k):  # the signal arrives during step 4's validation
