@@ -98,6 +98,9 @@ def main(argv=None) -> None:
     ap.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
                     help="diffgns.inverse.optimize's gradient (auto: AD, then differences "
                          "over 1%% of phi once a step raises the loss)")
+    ap.add_argument("--scan", type=float, nargs=3, default=None, metavar=("LO", "HI", "N"),
+                    help="start each inversion from the lowest loss of N friction angles "
+                         "from LO to HI deg (forward runs) instead of --start-phi alone")
     ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -114,6 +117,13 @@ def main(argv=None) -> None:
     )
     from diffgns.scene.families import random_scene
 
+    scan = None
+    if args.scan:
+        lo, hi, n = args.scan
+        n = int(n)
+        if n < 2 or not 0 < lo < hi < 90:
+            ap.error(f"--scan {args.scan}: use 0 < LO < HI < 90 and N >= 2")
+        scan = {"friction_angle": [lo + (hi - lo) * i / (n - 1) for i in range(n)]}
     model = args.model or DEFAULT_MODEL
     loaded = load_gns(model) if set(args.simulators) - {"mpm"} else None
     info = loaded[2] if loaded else model_info(model)
@@ -149,7 +159,8 @@ def main(argv=None) -> None:
                 print(f"--- {sim_kind}: {label}, phi = {phi:g} (start {start:g}); "
                       f"observation {t_obs:.0f} s", flush=True)
                 row = dict(simulator=sim_kind, **fields, objective=args.objective,
-                           gradient=args.gradient, true_phi=phi, start_phi=start,
+                           gradient=args.gradient, scan=args.scan, true_phi=phi,
+                           start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
                            observation_s=t_obs)
                 t1 = time.perf_counter()
@@ -161,7 +172,7 @@ def main(argv=None) -> None:
                     s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
                               max_iter=args.max_iter, step_tol=args.step_tol,
                               gradient=args.gradient, observed=observed, truth=truth,
-                              label=sim_kind, t_start=t1)
+                              label=sim_kind, t_start=t1, scan=scan)
                     row.update(recovered_phi=s["recovered"]["friction_angle"],
                                error_deg=s["error_deg"], iterations=s["iterations"],
                                converged=s["converged"], stop_reason=s["stop_reason"],

@@ -356,3 +356,27 @@ def test_auto_with_no_step_tolerance_still_stops():
                            inverse.make_optimizer("gauss-newton"), max_iter=40,
                            gradient="auto")
     assert len(res.history) <= 41 and abs(res.theta["friction_angle"] - 20.0) < 0.5
+
+
+def test_a_scan_starts_the_local_method_in_the_right_basin():
+    """Two minima (20 deg, the global one, and 44 deg, next to the start): from 45 deg the
+    local method ends in the near one; a scan over 15-50 deg starts it in the global one's
+    basin. Scan values outside the parameter's range, or of a name not fitted, are refused."""
+    def loss(th):
+        phi = th["friction_angle"]
+        return jnp.minimum(1e-3 * (phi - 20.0) ** 2, 0.002 + 1e-2 * (phi - 44.0) ** 2)
+
+    gn = inverse.make_optimizer("gauss-newton")
+    local = inverse.optimize(loss, {"friction_angle": 45.0}, gn, max_iter=30, step_tol=0.01,
+                             gradient="auto")
+    assert abs(local.theta["friction_angle"] - 44.0) < 0.5
+    grid = [15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
+    res = inverse.optimize(loss, {"friction_angle": 45.0}, gn, max_iter=30, step_tol=0.01,
+                           gradient="auto", scan={"friction_angle": grid})
+    assert [t["friction_angle"] for t, _ in res.scan] == pytest.approx(grid, abs=1e-4)
+    assert res.history[0]["theta"]["friction_angle"] == pytest.approx(20.0, abs=1e-4)
+    assert res.converged and abs(res.theta["friction_angle"] - 20.0) < 0.01
+    with pytest.raises(ValueError, match="inside"):
+        inverse.optimize(loss, {"friction_angle": 45.0}, gn, scan={"friction_angle": [95.0]})
+    with pytest.raises(ValueError, match="not fitted"):
+        inverse.optimize(loss, {"friction_angle": 45.0}, gn, scan={"cohesion": [1.0]})

@@ -67,7 +67,7 @@ def run(args) -> int:
         jax.config.update("jax_enable_x64", True)
     from diffgns.inverse.job import make_objective, make_simulator, solve
     from diffgns.inverse.observation import SceneObservation
-    from diffgns.inverse.parameters import parse_fit
+    from diffgns.inverse.parameters import parse_fit, parse_scan
     from diffgns.inverse.simulators import default_model, load_gns
     from diffgns.scene.files import load_scene
 
@@ -82,6 +82,7 @@ def run(args) -> int:
     theta0 = {name: start for name, start, _ in fits}
     transforms = {name: tf for name, _, tf in fits if tf is not None}
     truth = dict(parse_fit(s)[:2] for s in args.truth)
+    scan = dict(parse_scan(s) for s in args.scan) or None
     scene = load_scene(args.scene)
     if args.simulator != "mpm" and not args.model:
         args.model = default_model(scene)
@@ -123,7 +124,7 @@ def run(args) -> int:
     solve(sim, objective, theta0, obs, args.out, transforms=transforms,
           optimizer=args.optimizer, lr=args.lr, max_iter=args.max_iter,
           step_tol=args.step_tol, gradient=args.gradient, observed=nodes, truth=truth,
-          label=args.simulator, t_start=t_start,
+          label=args.simulator, t_start=t_start, scan=scan,
           extra=dict(scene=str(args.scene), objective=name,
                      observation=what, model=str(args.model) if loaded else None,
                      history=history if args.simulator == "gns" else None))
@@ -207,6 +208,10 @@ def register(sub) -> None:
     p.add_argument("--block", type=int, default=None,
                    help="frames per jax.checkpoint block (default MPM 25, GNS/hybrid 10; 0: "
                    "none)")
+    p.add_argument("--scan", action="append", default=[], metavar="NAME=LO:HI:N",
+                   help="start from the lowest loss of N values of NAME from LO to HI "
+                   "(forward runs; for a loss with several minima), e.g. "
+                   "friction_angle=15:50:8")
     p.add_argument("--truth", action="append", default=[], metavar="NAME=VALUE",
                    help="the true value when known (figures and summary error)")
     p.add_argument("--dtype", default=None, choices=["float32", "float64"],

@@ -168,6 +168,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
           lr: float | None = None, max_iter: int = 20, step_tol: float | dict = 0.01,
           gradient: str = "auto", observed=None, truth: dict | None = None,
           label: str = "", fd_check: bool = False, extra: dict | None = None,
+          scan: dict | None = None,
           t_start: float | None = None) -> dict:
     """Fit ``theta0`` with ``optimizer`` on ``objective(sim(theta))``; print, write, return.
 
@@ -179,6 +180,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
             0.1 otherwise) acts on the transformed parameters.
         step_tol: stop when every step is below this (physical units, float or by name).
         gradient: "auto", "ad" or "fd" (:func:`diffgns.inverse.optimize`).
+        scan: {name: values}: start from the lowest loss of a grid (``optimize``'s scan).
         observed: observed nodes (n_obs, n', 2) for the deposit figure (None: a runout).
         truth: the true parameters when known (figures, ``error``).
         label: the simulator's name for messages; ``extra``: more summary entries.
@@ -199,7 +201,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
                                                    else 0.1))
     res = inverse.optimize(loss, theta0, opt, max_iter=max_iter, transforms=transforms,
                            step_tol=step_tol, gradient=gradient, has_aux=True,
-                           on_overflow=sim.reallocate,
+                           on_overflow=sim.reallocate, scan=scan,
                            callback=lambda rec: print(format_record(rec), flush=True))
     aux = res.aux
     assert isinstance(aux, dict)
@@ -211,6 +213,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         error={k: res.theta[k] - v for k, v in truth.items() if k in res.theta},
         iterations=len(res.history) - 1, evaluations=len(res.history),
         converged=res.converged, stop_reason=res.stop_reason,
+        scan=[dict(theta=t, loss=v) for t, v in res.scan], scan_s=res.scan_s,
         compile_s=res.compile_s, optimisation_time_s=res.wall_time_s,
         time_per_iteration_s=float(np.median([h["time_s"] for h in res.history[1:]]
                                              or [res.history[0]["time_s"]])),

@@ -140,3 +140,19 @@ def parse_fit(spec: str) -> tuple[str, float, object]:
         raise ValueError(f"--fit {spec!r}: the start {start:g} must lie strictly inside "
                          f"({lo:g}, {hi:g})")
     return name, start, Bounded(lo, hi)
+
+
+def parse_scan(spec: str) -> tuple[str, list[float]]:
+    """``"name=lo:hi:n"`` -> (name, n values evenly spaced from lo to hi), for the ``scan``
+    of :func:`diffgns.inverse.optimize` (``diffgns invert --scan``)."""
+    name, _, rest = spec.partition("=")
+    parts = rest.split(":")
+    try:
+        lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+    except (ValueError, IndexError):
+        raise ValueError(f"--scan {spec!r}: use name=lo:hi:n, e.g. "
+                         "friction_angle=15:50:8") from None
+    if len(parts) != 3 or not (math.isfinite(lo) and math.isfinite(hi) and lo < hi and n >= 2):
+        raise ValueError(f"--scan {spec!r}: give finite lo < hi and n >= 2 points")
+    _split(name.strip())
+    return name.strip(), [lo + (hi - lo) * i / (n - 1) for i in range(n)]

@@ -13,9 +13,10 @@ are in :mod:`diffgns.inverse.optimizers`; Levenberg-Marquardt on residual vector
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import jax
@@ -36,7 +37,8 @@ class InverseResult:
 
     ``compile_s`` is the ahead-of-time compile time of the gradient program and ``xla_memory``
     its XLA memory analysis (bytes: temp, argument, output); ``aux`` the auxiliary output of
-    the last evaluation (e.g. the fitted positions) when the loss has one.
+    the last evaluation (e.g. the fitted positions) when the loss has one; ``scan`` the
+    (theta, loss) pairs of the ``scan`` option and ``scan_s`` its seconds.
     """
 
     theta: dict
@@ -47,6 +49,8 @@ class InverseResult:
     compile_s: float = 0.0
     xla_memory: dict = field(default_factory=dict)
     aux: object = None
+    scan: list = field(default_factory=list)
+    scan_s: float = 0.0
 
     def series(self, key: str, name: str | None = None) -> np.ndarray:
         """History of ``key`` ("loss", "time_s", ...) or of parameter ``name`` under "theta"."""
@@ -98,12 +102,43 @@ def _revisits(history: list, theta: dict, tol: dict) -> int | None:
     return None
 
 
+def _scan_start(full, to_theta, tf, u, scan: dict, dtype, result: InverseResult) -> dict:
+    """The point of ``scan`` (values by name, physical units) with the lowest loss, in u;
+    every point's (theta, loss) appended to ``result.scan``. ValueError for a name not
+    fitted or a value outside its transform's range."""
+    unknown = sorted(set(scan) - set(u))
+    if unknown:
+        raise ValueError(f"scan names {unknown} are not fitted parameters {sorted(u)}")
+    names = list(scan)
+    for k in names:
+        bad = [v for v in scan[k] if not (tf[k].lo < float(v) < tf[k].hi)]
+        if bad or not len(scan[k]):
+            raise ValueError(f"scan values of {k} must be a non-empty list inside "
+                             f"({tf[k].lo}, {tf[k].hi}), got {list(scan[k])}")
+    t0 = time.perf_counter()
+    exe, info = compile_ahead(jax.jit(lambda uu: full(to_theta(uu))[0]), u)
+    result.compile_s += info["lower_s"] + info["compile_s"]
+    best = None
+    for values in itertools.product(*(scan[k] for k in names)):
+        uu = dict(u, **{k: jnp.asarray(tf[k].inverse(float(v), k), dtype)
+                        for k, v in zip(names, values)})
+        loss = float(exe(uu))
+        result.scan.append(({k: float(tf[k].forward(uu[k])) for k in uu}, loss))
+        if np.isfinite(loss) and (best is None or loss < best[0]):
+            best = (loss, uu)
+    if best is None:
+        raise FloatingPointError(f"the loss is not finite at any scan point: {result.scan}")
+    result.scan_s = time.perf_counter() - t0
+    return best[1]
+
+
 def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransformation,
              max_iter: int = 20, transforms: dict | None = None, loss_tol: float = 0.0,
              step_tol: float | dict = 0.0, gradient: str = "ad", fd_rel_step: float = 1e-3,
              smooth_rel_step: float = 1e-2, has_aux: bool = False,
              on_overflow: Callable | None = None,
-             callback: Callable[[dict], None] | None = None) -> InverseResult:
+             callback: Callable[[dict], None] | None = None,
+             scan: dict[str, Sequence[float]] | None = None) -> InverseResult:
     """Minimise ``loss_fn(theta)`` with ``optimizer`` over transformed parameters.
 
     Args:
@@ -142,6 +177,12 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         on_overflow: theta -> None, called when aux["overflow"] is true (e.g. to re-allocate
             a neighbour list); the iteration is then recompiled and redone (twice at most).
         callback: called with each history record (e.g. to print progress).
+        scan: {name: values (physical units)}: before the loop, the loss (forward only) at
+            every combination of the values, parameters not named keeping ``theta0``; the
+            loop starts from the lowest (``theta0`` itself is not evaluated unless listed).
+            For a loss with several minima (a deposit behind an obstacle: the flow over
+            the obstacle or not), where a local method started far away ends in the
+            nearest one. Recorded in ``result.scan`` as (theta, loss) pairs.
     Returns:
         InverseResult; history records: iteration, theta, loss, grad (d loss / d theta,
         physical), grad_u (optimiser space), gradient ("ad" or "fd"; see "auto" for
@@ -196,6 +237,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             return loss, aux, g_u
         return differences(u)
 
+    if scan:
+        u = _scan_start(full, to_theta, tf, u, scan, dtype, result)
     build()
     state = optimizer.init(u)
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
