@@ -97,7 +97,7 @@ def main(argv=None) -> None:
     ap.add_argument("--step-tol", type=float, default=0.01, help="deg")
     ap.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
                     help="diffgns.inverse.optimize's gradient (auto: AD, then differences "
-                         "over 1%% of phi once a step raises the loss)")
+                         "over 1%% of phi from the best point once a step raises the loss)")
     ap.add_argument("--scan", type=float, nargs=3, default=None, metavar=("LO", "HI", "N"),
                     help="start each inversion from the lowest loss of N friction angles "
                          "from LO to HI deg (forward runs) instead of --start-phi alone")
@@ -120,10 +120,9 @@ def main(argv=None) -> None:
     scan = None
     if args.scan:
         lo, hi, n = args.scan
-        n = int(n)
-        if n < 2 or not 0 < lo < hi < 90:
-            ap.error(f"--scan {args.scan}: use 0 < LO < HI < 90 and N >= 2")
-        scan = {"friction_angle": [lo + (hi - lo) * i / (n - 1) for i in range(n)]}
+        from diffgns.inverse.parameters import parse_scan
+
+        scan = dict([parse_scan(f"friction_angle={lo}:{hi}:{int(n)}")])
     model = args.model or DEFAULT_MODEL
     loaded = load_gns(model) if set(args.simulators) - {"mpm"} else None
     info = loaded[2] if loaded else model_info(model)

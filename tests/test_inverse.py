@@ -342,6 +342,10 @@ def test_auto_rejects_an_overshoot_and_shrinks_the_step_instead_of_cycling():
     radii = [auto.history[i]["rejected"]["radius_u"] for i in rejected]
     assert radii[0] == 0.5 and all(b < a for a, b in zip(radii, radii[1:]))
     assert len({round(p, 6) for p in phi}) == len(phi)  # no point evaluated twice
+    # after the first rejection a point whose loss rose costs one forward run: no differences
+    later = [auto.history[i] for i in rejected[1:] if auto.history[i]["loss"] >
+             min(auto.series("loss")[:i])]
+    assert later and all(np.isnan(h["grad_u"]["friction_angle"]) for h in later)
     assert auto.converged and abs(auto.theta["friction_angle"] - 20.0) < 0.1
 
 

@@ -203,8 +203,9 @@ def register(sub) -> None:
                    help="stop when every step is below this (parameter units)")
     p.add_argument("--gradient", default="auto", choices=["auto", "ad", "fd"],
                    help="ad: automatic differentiation; fd: finite differences; auto: ad "
-                   "until a step raises the loss or cycles (a loss rough below the step's "
-                   "scale), then differences over 1%% of each parameter (default auto)")
+                   "until a step raises the loss or revisits a point, then back to the best "
+                   "point with differences over 1%% of each parameter and a halved step "
+                   "(default auto)")
     p.add_argument("--block", type=int, default=None,
                    help="frames per jax.checkpoint block (default MPM 25, GNS/hybrid 10; 0: "
                    "none)")

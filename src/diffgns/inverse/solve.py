@@ -75,19 +75,22 @@ def evaluate_redo(evaluate: Callable, rebuild: Callable, on_overflow, to_theta, 
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def record(it: int, tf: dict, u: dict, loss, g_u: dict, aux, t0: float, t_start: float
-           ) -> dict:
-    """One history record (physical theta and gradient, time, memory, scalar aux)."""
+def record(it: int, tf: dict, u: dict, loss, g_u: dict | None, aux, t0: float,
+           t_start: float) -> dict:
+    """One history record (physical theta and gradient, time, memory, scalar aux); with
+    ``g_u`` None (a point rejected on its loss alone) the gradient entries are nan."""
     loss = float(jax.block_until_ready(loss))
     theta = {k: float(tf[k].forward(v)) for k, v in u.items()}
     dth = {k: float(jax.grad(tf[k].forward)(u[k])) for k in u}
+    g = {k: math.nan for k in u} if g_u is None else {k: float(v) for k, v in g_u.items()}
     rec = dict(iteration=it, theta=theta, loss=loss,
-               grad={k: float(g_u[k]) / dth[k] if dth[k] else math.nan for k in u},
-               grad_u={k: float(v) for k, v in g_u.items()},
+               grad={k: g[k] / dth[k] if dth[k] else math.nan for k in u},
+               grad_u=g,
                time_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - t_start,
                rss_mb=current_rss_mb(), peak_rss_mb=peak_rss_mb(),
                aux={k: float(v) for k, v in (aux or {}).items() if np.ndim(v) == 0})
-    if not np.isfinite(loss) or not all(np.isfinite(v) for v in rec["grad_u"].values()):
+    if not np.isfinite(loss) or (g_u is not None
+                                 and not all(np.isfinite(v) for v in g.values())):
         raise FloatingPointError(f"non-finite loss or gradient at iteration {it}: {rec}")
     return rec
 
@@ -102,10 +105,10 @@ def _revisits(history: list, theta: dict, tol: dict) -> int | None:
     return None
 
 
-def _scan_start(full, to_theta, tf, u, scan: dict, dtype, result: InverseResult) -> dict:
-    """The point of ``scan`` (values by name, physical units) with the lowest loss, in u;
-    every point's (theta, loss) appended to ``result.scan``. ValueError for a name not
-    fitted or a value outside its transform's range."""
+def _scan_start(loss_of, tf, u, scan: dict, dtype, result: InverseResult) -> dict:
+    """The point of ``scan`` (values by name, physical units) with the lowest
+    ``loss_of(u)``, in u; every point's (theta, loss) appended to ``result.scan``.
+    ValueError for a name not fitted or a value outside its transform's range."""
     unknown = sorted(set(scan) - set(u))
     if unknown:
         raise ValueError(f"scan names {unknown} are not fitted parameters {sorted(u)}")
@@ -116,13 +119,11 @@ def _scan_start(full, to_theta, tf, u, scan: dict, dtype, result: InverseResult)
             raise ValueError(f"scan values of {k} must be a non-empty list inside "
                              f"({tf[k].lo}, {tf[k].hi}), got {list(scan[k])}")
     t0 = time.perf_counter()
-    exe, info = compile_ahead(jax.jit(lambda uu: full(to_theta(uu))[0]), u)
-    result.compile_s += info["lower_s"] + info["compile_s"]
     best = None
     for values in itertools.product(*(scan[k] for k in names)):
         uu = dict(u, **{k: jnp.asarray(tf[k].inverse(float(v), k), dtype)
                         for k, v in zip(names, values)})
-        loss = float(exe(uu))
+        loss = float(loss_of(uu))
         result.scan.append(({k: float(tf[k].forward(uu[k])) for k in uu}, loss))
         if np.isfinite(loss) and (best is None or loss < best[0]):
             best = (loss, uu)
@@ -203,18 +204,29 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
     t_start = time.perf_counter()
     result = InverseResult(theta=dict(theta0))
 
-    exe = None
+    exe = fwd = None
     mode = "ad" if gradient == "auto" else gradient  # "auto" turns to "fd" at a rejection
     rel_step = fd_rel_step if gradient == "fd" else smooth_rel_step
+    f = lambda uu: full(to_theta(uu))
 
-    def build():
-        nonlocal exe
-        f = lambda uu: full(to_theta(uu))
-        fn = jax.value_and_grad(f, has_aux=True) if mode == "ad" else f
-        exe, info = compile_ahead(jax.jit(fn), u)
+    def compiled(fn):
+        ex, info = compile_ahead(jax.jit(fn), u)
         result.compile_s += info["lower_s"] + info["compile_s"]
         if mode == "ad" or not result.xla_memory:
             result.xla_memory = info["memory"]
+        return ex
+
+    def forward(fresh: bool = False):
+        """The forward program (loss, aux), compiled once (again after a reallocation)."""
+        nonlocal fwd
+        if fwd is None or fresh:
+            fwd = compiled(f)
+        return fwd
+
+    def build(fresh: bool = False):
+        nonlocal exe
+        exe = compiled(jax.value_and_grad(f, has_aux=True)) if mode == "ad" else \
+            forward(fresh)
 
     def differences(u, loss=None, aux=None):
         """Central differences of the loss (forward program) in physical units, chained
@@ -235,14 +247,17 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if mode == "ad":
             (loss, aux), g_u = exe(u)
             return loss, aux, g_u
-        return differences(u)
+        loss, aux = exe(u)
+        if gradient == "auto" and best is not None and float(loss) > best["loss"]:
+            return loss, aux, None  # rejected on its loss: no differences needed
+        return differences(u, loss, aux)
 
+    best = None  # dict(loss, it, theta, aux, u, g_u, mode) of the lowest loss so far
     if scan:
-        u = _scan_start(full, to_theta, tf, u, scan, dtype, result)
+        u = _scan_start(lambda uu: forward()(uu)[0], tf, u, scan, dtype, result)
     build()
     state = optimizer.init(u)
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
-    best = None  # dict(loss, it, theta, aux, u, g_u, mode) of the lowest loss so far
     radius = math.inf  # "auto": trust radius on each step in u, set by the first rejection
 
     def propose(g, st, uu, value):
@@ -254,9 +269,10 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
 
     for it in range(max_iter + 1):
         t0 = time.perf_counter()
-        loss, aux, g_u = evaluate_redo(evaluate, build, on_overflow, to_theta, u, it)
+        loss, aux, g_u = evaluate_redo(evaluate, lambda: build(fresh=True), on_overflow,
+                                       to_theta, u, it)
         rec = record(it, tf, u, loss, g_u, aux, t0, t_start)
-        rec["gradient"] = mode
+        rec["gradient"] = mode if g_u is not None else "none (rejected on its loss)"
         loss, theta = rec["loss"], rec["theta"]
         result.history.append(rec)
         result.theta, result.aux = theta, aux
@@ -273,9 +289,11 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
         if it == max_iter:
             result.stop_reason = f"max_iter = {max_iter}"
             break
-        new, state = propose(g_u, state, u, loss)
-        back = _revisits(result.history[:-1], {k: float(tf[k].forward(new[k])) for k in u},
-                         tol)
+        new, back = u, None  # (a point rejected on its loss alone has no gradient)
+        if g_u is not None:
+            new, state = propose(g_u, state, u, loss)
+            back = _revisits(result.history[:-1],
+                             {k: float(tf[k].forward(new[k])) for k in u}, tol)
         start = theta  # the point the step is taken from
         if gradient == "auto" and (rose or back is not None):
             # the step raised the loss (or leads back to a point no better): reject it. From
