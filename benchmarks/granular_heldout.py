@@ -10,8 +10,13 @@ runout from the back of the initial mass in the flow's direction (``flow_runout`
 position error relative to the mean displacement, inside the domain, finite, final kinetic
 energy. :func:`~diffgns.graph.evaluate.per_family` gives the table per family (from the
 dataset's ``family`` attributes) against the targets of issue 21 (5% and 5% per case).
-Accuracy only: the protocol records the load but never refuses the run. Draw the held-out set
-(``make granular-test-data``) after the model is frozen.
+Accuracy alone by default: the protocol records the load but never refuses the run. With
+``--timed ROUNDS`` each case's cost per simulated second is also measured against the MPM
+at its stable dt on the case's own scene (redrawn from the stored family and scene seed and
+checked against the stored particle count), in ``ROUNDS`` interleaved rounds
+(``gns_accuracy_speed.py``'s calls and ratio: compile apart, block_until_ready, median of the
+per-round ratios); then the protocol refuses a loaded machine. Draw the held-out set (``make
+granular-test-data``) after the model is frozen.
 
 Writes ``benchmarks/results/<out>.json`` (every row and the table) and prints the table.
 """
@@ -28,9 +33,11 @@ def main(argv=None) -> None:
     ap.add_argument("--data", required=True, help="held-out dataset (.h5 with families)")
     ap.add_argument("--n", type=int, default=None, help="first n trajectories only")
     ap.add_argument("--out", default="granular_heldout.json")
+    ap.add_argument("--timed", type=int, default=0, metavar="ROUNDS",
+                    help="also time GNS against the stable-dt MPM, ROUNDS interleaved rounds")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
-    run = protocol.start(args, "granular_heldout", timed=False)  # accuracy: never refused
+    run = protocol.start(args, "granular_heldout", timed=args.timed > 0)
 
     from diffgns.graph.data import load_trajectories
     from diffgns.graph.evaluate import TARGETS, evaluate, per_family
@@ -46,6 +53,13 @@ def main(argv=None) -> None:
     res = evaluate(gns, params, trajs)
     for row, fam in zip(res["rows"], families):
         row["family"] = fam
+    if args.timed:
+        for row, ref, sample in zip(res["rows"], trajs, _samples(args.data)):
+            row.update(speed_of_case(gns, params, ref, sample, args.timed))
+            run.print(f"case {row['case']:>2} {row['family']:<10}: GNS "
+                      f"{row['gns_s_per_sim_s']:.3f}, MPM {row['mpm_stable_s_per_sim_s']:.3f} "
+                      f"s per simulated s ({row['mpm_substeps_stable']} substeps per frame); "
+                      f"GNS {row['speedup_vs_mpm_stable']:.1f}x cheaper")
     table = per_family(res["rows"], families)
     run.print(f"{'family':<12} {'cases':>5} {'runout mean/max':>16} {'pos err mean/max':>17} "
               f"{'outside':>7} {'NaN':>4} {'met':>4}")
@@ -56,9 +70,45 @@ def main(argv=None) -> None:
                   f"{t['final_position_error_rel_displacement_max']:<8.3f} "
                   f"{t['outside_domain']:>7} {t['not_finite']:>4} {str(t['met']):>4}")
     run.print(f"targets per case: {TARGETS}")
+    if args.timed:
+        import numpy as np
+
+        for fam in dict.fromkeys(families):
+            sp = [r["speedup_vs_mpm_stable"] for r in res["rows"] if r["family"] == fam]
+            table[fam]["speedup_vs_mpm_stable_min"] = float(np.min(sp))
+            table[fam]["speedup_vs_mpm_stable_median"] = float(np.median(sp))
+            run.print(f"{fam:<12} GNS cheaper than the stable-dt MPM per simulated second: "
+                      f"min {np.min(sp):.1f}x, median {np.median(sp):.1f}x")
     path = run.finish(args.out, dict(model=str(args.model), data=str(args.data),
                                      targets=TARGETS, rows=res["rows"], table=table))
     run.print(f"wrote {path}")
+
+
+def _samples(path) -> list[tuple]:
+    """(family, scene seed, stored particle count, ranges) of every trajectory of ``path``."""
+    import h5py
+
+    from diffgns.io.families_data import read_families, read_ranges
+
+    ranges = read_ranges(path)
+    with h5py.File(path, "r") as f:
+        return [(fam, int(f[k].attrs["scene_seed"]), int(f[k]["position"].shape[1]), ranges)
+                for k, fam in read_families(path).items()]
+
+
+def speed_of_case(gns, params, ref, sample: tuple, rounds: int) -> dict:
+    """``gns_accuracy_speed.stable_speed`` on the scene ``sample = (family, scene seed,
+    particles, ranges)``, redrawn and checked against the stored particle count."""
+    from gns_accuracy_speed import stable_speed
+
+    from diffgns.scene.families import random_scene
+
+    family, seed, n_particles, ranges = sample
+    scene = random_scene(family, seed, **ranges)
+    if scene.n_particles != n_particles:
+        raise SystemExit(f"{family}:{seed} redraws {scene.n_particles} particles, the data has "
+                         f"{n_particles}: the dataset was drawn with other ranges")
+    return stable_speed(gns, params, ref, scene, rounds)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import granular_heldout as gh  # noqa: E402
+import granular_truth_spread as gts  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
 import meshnet_accuracy_speed as mas  # noqa: E402
 
@@ -80,3 +82,42 @@ def test_meshnet_cfd_settings_from_either_kind_of_dataset(tmp_path):
     (tmp_path / "none.metadata.json").write_text(json.dumps({"kind": "cylinder"}))
     with pytest.raises(SystemExit, match="no CFD settings"):
         mas.dataset_run(tmp_path / "none.h5")
+
+
+def test_node_spread_is_zero_spread_growth_under_a_rigid_move_and_exact_for_a_split():
+    import numpy as np
+
+    from diffgns.graph.data import coarse_grain_map
+
+    g = (np.arange(8) + 0.5) * 0.003
+    x0 = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)  # 64 particles
+    rms0, _ = gts.node_spread(np.stack([x0, x0]), 16)
+    moved = np.stack([x0, x0 + np.array([0.1, -0.02])])
+    assert gts.node_spread(moved, 16)[0] == pytest.approx(rms0, rel=1e-9)
+    # split every cluster: its first half of particles 2 m to the right of the rest
+    cid = coarse_grain_map(x0, 16)
+    split = x0.copy()
+    for c in range(cid.max() + 1):
+        members = np.flatnonzero(cid == c)
+        split[members[: len(members) // 2], 0] += 2.0
+    rms, p99 = gts.node_spread(np.stack([x0, split]), 16)
+    # every particle 1 m from its cluster mean, up to its in-cluster offset (mm)
+    assert rms == pytest.approx(1.0, abs=2 * rms0) and p99 == pytest.approx(1.0, abs=0.01)
+
+
+def test_truth_spread_dt_perturbation_is_a_shorter_substep_not_another_scene():
+    from diffgns.mpm import MPM
+    from diffgns.scene.families import random_scene
+
+    scene = random_scene("columns", 3)
+    base, _ = MPM(scene).run(MPM(scene).params(), MPM(scene).init(), 2)
+    other = gts.perturbed_run(scene, "dt", 2)
+    import numpy as np
+
+    d = np.abs(np.asarray(other.positions) - np.asarray(base.positions)).max()
+    assert 0 < d < 1e-4  # the same flow, not bit-identical: the substep did change
+
+
+def test_heldout_timing_refuses_a_scene_that_does_not_redraw_the_stored_one():
+    with pytest.raises(SystemExit, match="redraws .* particles, the data has 7"):
+        gh.speed_of_case(None, None, None, ("columns", 3, 7, {}), 1)

@@ -12,7 +12,12 @@ import pytest
 from diffgns.cli import main
 from diffgns.errors import InputError
 from diffgns.io.dataset import load_dataset, read_metadata
-from diffgns.io.families_data import generate_families, read_families, read_obstacles
+from diffgns.io.families_data import (
+    generate_families,
+    read_families,
+    read_obstacles,
+    read_ranges,
+)
 from diffgns.scene.families import random_sample
 from diffgns.scene.recipes import family_plan
 
@@ -76,3 +81,50 @@ def test_cli_refuses_unknown_family(tmp_path, capsys, families):
     err = capsys.readouterr().err.strip()
     assert err.startswith("diffgns: error: --families") and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+@pytest.mark.parametrize("boxes, field, words", [
+    (["1.41x0.35"], "--boxes", "not a whole number"),
+    (["1.4"], "--boxes", "LENGTHxHEIGHT"),
+    (["0x0.35"], "--boxes", "> 0"),
+])
+def test_cli_refuses_a_bad_box(tmp_path, capsys, boxes, field, words):
+    out = tmp_path / "x.h5"
+    assert main(["dataset", "--kind", "granular", "--boxes", *boxes, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"diffgns: error: {field}") and words in err
+    assert not out.exists()
+
+
+def test_cli_refuses_column_pairs_in_a_box_too_long_for_them_to_meet(tmp_path, capsys):
+    out = tmp_path / "x.h5"
+    assert main(["dataset", "--kind", "granular", "--families", "column_pair", "--boxes",
+                 "1.4x0.35", "--n", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--families, --boxes" in err and "near enough to meet" in err
+    assert not out.exists()
+
+
+@pytest.mark.slow  # two MPM compilations
+def test_held_out_compositions_in_a_longer_box_keep_their_box_in_the_recipe(tmp_path):
+    """The held-out sets of issue 21: a composition never trained on, in a box 1.75 x the
+    longest training box; the recipe stores the box, so a resume with another box is refused
+    and the scenes can be redrawn from (family, scene seed, recipe ranges)."""
+    out = tmp_path / "long.h5"
+    assert main(["dataset", "--kind", "granular", "--families", "column_hit", "squares",
+                 "--boxes", "1.4x0.35", "--n", "2", "--frames", "3", "--seed", "5",
+                 "--out", str(out)]) == 0
+    trajs = load_dataset(out)
+    assert [tuple(map(tuple, t.bounds)) for t in trajs] == [((0.0, 1.4), (0.0, 0.35))] * 2
+    assert read_families(out) == {"00000": "column_hit", "00001": "squares"}
+    with h5py.File(out, "r") as f:
+        recipe = json.loads(f.attrs["recipe"])
+    assert recipe["ranges"]["boxes"] == [[1.4, 0.35]]
+    with h5py.File(out, "r") as f:
+        seeds = [int(f[k].attrs["scene_seed"]) for k in ("00000", "00001")]
+    redrawn = [random_sample(fam, s, **read_ranges(out))[0] for fam, s in
+               zip(["column_hit", "squares"], seeds)]
+    assert [sc.n_particles for sc in redrawn] == [t.n_particles for t in trajs]
+    assert random_sample("squares", seeds[1])[0].domain != redrawn[1].domain
+    with pytest.raises(InputError, match="different recipe"):
+        generate_families(out, ["column_hit", "squares"], 2, 3, seed=5, progress=False)

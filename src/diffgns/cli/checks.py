@@ -117,6 +117,24 @@ def probability(text: str) -> float:
     return value
 
 
+def box_size(text: str) -> tuple[float, float]:
+    """argparse type: a 2D box ``LENGTHxHEIGHT`` in m, e.g. ``1.4x0.35``."""
+    parts = text.lower().split("x")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a box; give LENGTHxHEIGHT in m, "
+                                         "e.g. 1.4x0.35")
+    length, height = (finite(p) for p in parts)
+    if length <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"{text}: box sides must be > 0 m")
+    return (length, height)
+
+
+def granular_kw(args) -> dict:
+    """Family ranges (:class:`~diffgns.scene.families.FamilyRanges` fields) of a granular
+    dataset recipe from the ``dataset`` arguments (only those given)."""
+    return dict(boxes=tuple(args.boxes)) if getattr(args, "boxes", None) else {}
+
+
 def non_negative(text: str) -> float:
     """argparse type: a finite number >= 0 (noise levels, loss weights)."""
     value = finite(text)
@@ -173,10 +191,12 @@ def check_dataset(args) -> None:
         from diffgns.scene.recipes import family_scenes
 
         try:
-            for _ in family_scenes(args.families, args.n, args.seed):
+            for _ in family_scenes(args.families, args.n, args.seed, **granular_kw(args)):
                 pass
         except SceneError as e:
-            raise _scene_refusal(e, "--families", "check --families and --seed") from None
+            field = "--families, --boxes" if args.boxes else "--families"
+            raise _scene_refusal(e, field, "check --families, --boxes and --seed",
+                                 {"FamilyRanges.boxes": ("--boxes", "")}) from None
     elif args.kind == "squares":
         from diffgns.scene.recipes import square_scenes
 

@@ -7,11 +7,13 @@ import json
 from pathlib import Path
 
 from diffgns.cli.checks import (
+    box_size,
     check_dataset,
     check_simulate,
     count,
     finite,
     frames,
+    granular_kw,
     squares_kw,
 )
 
@@ -114,7 +116,7 @@ def _generate(args, shard) -> int:
         from diffgns.io.families_data import generate_families
 
         path = generate_families(args.out, args.families, args.n, args.frames, seed=args.seed,
-                                 shard=shard)
+                                 shard=shard, **granular_kw(args))
         print(f"dataset written to {path}")
         return 0
     from diffgns.io.datagen import generate_columns, generate_squares
@@ -216,7 +218,11 @@ def register(sub) -> None:
                    "cylinder flows")
     d.add_argument("--families", nargs="+", default=["squares", "columns", "obstacles",
                    "collision"], help="granular: scene families, round-robin (repeat one to "
-                   "weight it) (default squares columns obstacles collision)")
+                   "weight it); the held-out compositions column_pair and column_hit are "
+                   "for test sets (default squares columns obstacles collision)")
+    d.add_argument("--boxes", type=box_size, nargs="+", default=None, metavar="LxH",
+                   help="granular: boxes drawn from, LENGTHxHEIGHT in m, multiples of "
+                   "0.0125 m (default 0.8x0.35 0.6x0.5; a held-out longer box: 1.4x0.35)")
     d.add_argument("--out", required=True,
                    help="output .h5 file; built as <out>.partial and renamed when complete; "
                    "an existing file or .partial made by the same recipe is resumed")

@@ -35,7 +35,8 @@ from diffgns.scene.families import ranges_dict
 from diffgns.scene.recipes import family_plan, family_scenes
 from diffgns.shard import Shard
 
-__all__ = ["families_recipe", "generate_families", "read_families", "read_obstacles"]
+__all__ = ["families_recipe", "generate_families", "read_families", "read_obstacles",
+           "read_ranges"]
 
 
 def families_recipe(families, n_frames: int, seed: int = 0, **ranges) -> dict:
@@ -94,3 +95,16 @@ def read_families(path: str | Path) -> dict[str, str]:
     with h5py.File(path, "r") as f:
         return {k: str(f[k].attrs.get("family", "")) for k in sorted(f)
                 if isinstance(f[k], h5py.Group) and not k.startswith(_TMP_PREFIX)}
+
+
+def read_ranges(path: str | Path) -> dict:
+    """The :class:`~diffgns.scene.families.FamilyRanges` fields ``path`` was drawn with (from
+    its recipe; tuples as the dataclass has them), so that ``random_sample(family,
+    scene_seed, **read_ranges(path))`` redraws any of its scenes."""
+    with h5py.File(path, "r") as f:
+        ranges = json.loads(f.attrs["recipe"])["ranges"]
+
+    def tup(v):
+        return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+    return {k: tup(v) for k, v in ranges.items()}

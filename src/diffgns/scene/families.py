@@ -15,6 +15,14 @@ Families (:data:`FAMILIES`):
   standing on the floor;
 * ``collision``: two masses thrown at each other.
 
+Held-out compositions (:data:`HELDOUT_FAMILIES`), never in a training set, each a
+composition of training families' physics that no training scene shows:
+
+* ``column_pair``: a column at rest against each side wall; the two collapses run toward
+  each other and meet (the flows of ``columns``, met head-on as in ``collision``);
+* ``column_hit``: a column at rest against a side wall struck by a mass thrown at it (a
+  ``columns`` collapse set off by a ``squares`` impact).
+
 One boundary convention for every family, so the network never sees two behaviours at a wall
 it cannot tell apart: the floor and the obstacles are Coulomb-frictional (``floor_mu``,
 ``obstacle_mu``, default 0.5 as the shipped column data), the side walls and the ceiling slip.
@@ -42,9 +50,13 @@ from diffgns.scene.core import Body, BoxObstacle, Scene, Wall, Walls
 from diffgns.scene.materials import Sand
 from diffgns.scene.shapes import Rectangle
 
-__all__ = ["BOXES", "FAMILIES", "FamilyRanges", "random_sample", "random_scene", "ranges_dict"]
+__all__ = ["ALL_FAMILIES", "BOXES", "FAMILIES", "HELDOUT_FAMILIES", "FamilyRanges",
+           "random_sample", "random_scene", "ranges_dict"]
 
-FAMILIES = ("squares", "columns", "obstacles", "collision")
+FAMILIES = ("squares", "columns", "obstacles", "collision")  # the training families
+HELDOUT_FAMILIES = ("column_pair", "column_hit")  # compositions for held-out sets only
+ALL_FAMILIES = FAMILIES + HELDOUT_FAMILIES  # appended: a family's random stream never moves
+_DRAWS = 1000  # attempts per scene (a family that fits early draws exactly as with fewer)
 BOXES = ((0.8, 0.35), (0.6, 0.5))  # (length, height) m: today's box and a taller, shorter one
 
 
@@ -122,7 +134,7 @@ class FamilyRanges:
 
 
 def random_scene(family: str, seed: int, **ranges) -> Scene:
-    """A random scene of ``family`` (one of :data:`FAMILIES`) drawn from ``seed`` (int >= 0);
+    """A random scene of ``family`` (one of :data:`ALL_FAMILIES`) drawn from ``seed`` (int >= 0);
     ``ranges`` override fields of :class:`FamilyRanges`. See :func:`random_sample`."""
     return random_sample(family, seed, **ranges)[0]
 
@@ -135,20 +147,21 @@ def random_sample(family: str, seed: int, **ranges) -> tuple[Scene, dict]:
     family extras (a column's aspect ratio and side). Raises SceneError for an unknown
     family, a negative seed, bad ranges, or ranges too large for the box.
     """
-    if family not in FAMILIES:
-        raise SceneError(f"random_scene: family {family!r} is unknown; use one of {FAMILIES}")
+    if family not in ALL_FAMILIES:
+        raise SceneError(f"random_scene: family {family!r} is unknown; use one of "
+                         f"{ALL_FAMILIES}")
     if not (isinstance(seed, (int, np.integer)) and seed >= 0):
         raise SceneError(f"random_scene: seed = {seed!r} must be an integer >= 0")
     unknown = sorted(set(ranges) - {f.name for f in fields(FamilyRanges)})
     if unknown:
         raise SceneError(f"random_scene: unknown range(s) {unknown}; use fields of FamilyRanges")
     r = replace(FamilyRanges(), **ranges)
-    rng = np.random.default_rng([FAMILIES.index(family), int(seed)])
+    rng = np.random.default_rng([ALL_FAMILIES.index(family), int(seed)])
     box = r.boxes[int(rng.integers(len(r.boxes)))]
     phi = float(rng.uniform(*r.friction_angle))
     lay = _Layout(r, box)
     extra: dict = {}
-    for _ in range(100):  # a draw that does not fit is redrawn (same rng: deterministic)
+    for _ in range(_DRAWS):  # a draw that does not fit is redrawn (same rng: deterministic)
         lay.clear()
         try:
             extra = _DRAW[family](lay, rng, r)
@@ -156,8 +169,10 @@ def random_sample(family: str, seed: int, **ranges) -> tuple[Scene, dict]:
         except _NoRoom:
             continue
     else:
+        hint = ("two columns must stand near enough to meet: use a shorter box or taller "
+                "columns" if family == "column_pair" else "use smaller sizes or a larger box")
         raise SceneError(f"random_scene: could not place a {family} scene in the box {box} in "
-                         "100 draws; use smaller sizes or a larger box")
+                         f"{_DRAWS} draws; {hint}")
     sand = Sand(friction_angle=phi)
     bodies = tuple(Body(Rectangle(*lay.metres(b)), sand, velocity=v,
                         particles_per_cell=r.particles_per_cell, name=f"mass{k}")
@@ -314,8 +329,42 @@ def _collision(lay: _Layout, rng, r: FamilyRanges) -> dict:
     return {}
 
 
+def _column_pair(lay: _Layout, rng, r: FamilyRanges) -> dict:
+    """A column against each side wall, close enough that the flows meet: the gap between
+    them is at most the sum of their heights (a collapse runs out 1-1.5 times its height
+    beyond its base at low friction), else the draw is redone."""
+    first = lay.column(rng)
+    lay.mirror()  # the first column now stands against the right wall
+    second = lay.column(rng)
+    (i0, _, w0, h0), (i1, _, _, h1) = lay.bodies[1], lay.bodies[0]
+    gap = i1 - (i0 + w0)
+    if gap > h0 + h1 or gap < 2 * r.gap:
+        raise _NoRoom
+    return dict(aspect_ratio=[second["aspect_ratio"], first["aspect_ratio"]],
+                column_width=[second["column_width"], first["column_width"]],
+                gap=gap * r.unit)
+
+
+def _column_hit(lay: _Layout, rng, r: FamilyRanges) -> dict:
+    """A column against the left wall and a mass thrown at it from its right, moving left
+    and down with its bottom below the column's top (so it strikes the column, not the
+    wall behind it); mirrored half of the time."""
+    extra = lay.column(rng)
+    _, _, cw, ch = lay.bodies[0]
+    w, h = lay.mass_size(rng)
+    lo = cw + 2 * r.gap
+    sx, sy = r.speed
+    v = (-float(rng.uniform(0.25 * sx, sx)), -float(rng.uniform(0.0, sy)))
+    lay.put_random(rng, w, h, (lo, min(lay.nx - r.gap - w, lo + lay.nx // 3)),
+                   (r.gap, min(ch - 1, lay.ny - r.gap - h)), v)
+    side = "right" if rng.random() < 0.5 else "left"
+    if side == "right":
+        lay.mirror()
+    return dict(extra, side=side)
+
+
 _DRAW = {"squares": _squares, "columns": _columns, "obstacles": _obstacles,
-         "collision": _collision}
+         "collision": _collision, "column_pair": _column_pair, "column_hit": _column_hit}
 
 
 def ranges_dict(**ranges) -> dict:

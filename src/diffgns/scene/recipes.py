@@ -13,7 +13,7 @@ from diffgns.errors import SceneError
 from diffgns.scene.builders import column_collapse, granular_squares
 from diffgns.scene.builders3d import axisymmetric_column
 from diffgns.scene.core import Scene
-from diffgns.scene.families import FAMILIES, random_sample
+from diffgns.scene.families import ALL_FAMILIES, random_sample
 
 __all__ = ["FAMILY_SEED_STRIDE", "column_samples", "column_scene", "column_scenes", "family_plan",
            "family_scenes", "square_scenes"]
@@ -72,9 +72,10 @@ def family_plan(families, n: int, seed: int = 0) -> list[tuple[str, int]]:
     scene seed ``seed * FAMILY_SEED_STRIDE + i``, so sample i never changes when ``n``
     grows and datasets of different ``seed`` (held-out sets) draw disjoint scenes."""
     families = list(families)
-    bad = [f for f in families if f not in FAMILIES]
+    bad = [f for f in families if f not in ALL_FAMILIES]
     if not families or bad:
-        raise SceneError(f"families {bad or families} unknown or empty; use names of {FAMILIES}")
+        raise SceneError(f"families {bad or families} unknown or empty; use names of "
+                         f"{ALL_FAMILIES}")
     if not (isinstance(seed, int) and seed >= 0):
         raise SceneError(f"seed = {seed!r} must be an integer >= 0")
     return [(families[i % len(families)], seed * FAMILY_SEED_STRIDE + i) for i in range(n)]
