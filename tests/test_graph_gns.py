@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from diffgns.graph.features import ParticleStats
-from diffgns.graph.gns import GNS, GNSConfig, GNSParams
+from diffgns.graph.gns import GNS, CompactionWarning, GNSConfig, GNSParams, warn_if_compacted
 from diffgns.graph.neighbors import did_overflow, edges
 from diffgns.interface import NeighborOverflowError, rollout, rollout_safe
 
@@ -130,7 +130,8 @@ def test_kinematic_path_and_overflow_reallocation(sim):
     with pytest.raises(NeighborOverflowError, match="overflowing"):  # reported, not hidden
         _roll(gns, params, hist, ptype, material, STEPS, nbrs, kinematic_path=path,
               max_retries=0)
-    xs, big = _roll(gns, params, hist, ptype, material, STEPS, nbrs, kinematic_path=path)
+    with pytest.warns(CompactionWarning, match="compacted to .*x the neighbour pairs"):
+        xs, big = _roll(gns, params, hist, ptype, material, STEPS, nbrs, kinematic_path=path)
     assert big.idx.shape[1] > nbrs.idx.shape[1] and not bool(did_overflow(big))
     np.testing.assert_array_equal(np.asarray(xs)[:, :half], path[:, :half])  # follow path
     # Same result as a rollout with a list that holds every pair from the start.
@@ -154,7 +155,23 @@ def test_rollout_stays_inside_the_domain(sim):
     gns, params, hist, ptype, material, nbrs, _ = sim
     fast = hist.copy()
     fast[:, -1] = fast[:, -2] + np.float32([0.2, -0.3])  # 0.2-0.3 domain widths per frame
-    xs, _ = _roll(gns, params, fast, ptype, material, 5)
+    with pytest.warns(CompactionWarning):  # every particle piled on the floor: reported
+        xs, _ = _roll(gns, params, fast, ptype, material, 5)
     assert np.isfinite(xs).all()
     assert (xs >= 0.0).all() and (xs <= 1.0).all()
     assert np.isclose(xs[..., 1].min(), 0.0)  # pressed against the floor, not through it
+
+
+def test_compaction_warning_fires_on_packing_not_on_a_moved_or_spread_flow(sim, recwarn):
+    """The pair count of a list against that of the first frame: a lattice squeezed to a
+    third of its spacing warns; the same lattice moved, or spread out, does not."""
+    gns = sim[0]
+    g = np.arange(6, dtype=np.float32) * 0.06
+    x0 = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + 0.3  # spacing 0.06 < R = 0.1
+    nb = gns.neighbors
+    assert warn_if_compacted(nb, x0, nb.allocate(x0 + 0.05), 5) == pytest.approx(1.0)
+    assert warn_if_compacted(nb, x0, nb.allocate(0.3 + 1.5 * (x0 - 0.3)), 5) < 1.0
+    assert not [w for w in recwarn if w.category is CompactionWarning]
+    with pytest.warns(CompactionWarning, match="by frame 9"):
+        ratio = warn_if_compacted(nb, x0, nb.allocate(0.4 + (x0 - 0.3) / 3), 9)
+    assert ratio > 5

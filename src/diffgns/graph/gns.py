@@ -369,8 +369,12 @@ class GNS:
                    attempt: int) -> GNSState:
         """``state`` with a larger neighbour list (outside jit), sized at the last valid
         frame before the overflow at frame ``first_bad`` of ``frames``."""
-        x = frames.positions[max(int(first_bad) - 1, 0)]
-        return state._replace(nbrs=self.neighbors.reallocate(x, state.nbrs, attempt))
+        k = max(int(first_bad) - 1, 0)
+        x = frames.positions[k]
+        nbrs = self.neighbors.reallocate(x, state.nbrs, attempt)
+        if attempt == 0:
+            warn_if_compacted(self.neighbors, frames.positions[0], nbrs, k)
+        return state._replace(nbrs=nbrs)
 
     def trajectory(self, params: GNSParams, frames: ParticleFrame, particle_type
                    ) -> Trajectory:
@@ -382,3 +386,38 @@ class GNS:
                                                     particle_type.shape),
                           frame_dt=self.frame_dt, bounds=self.config.bounds,
                           clamped=frames.clamp.moved, clamp_shift=frames.clamp.shift)
+
+
+#: largest growth of the neighbour-pair count over a rollout, relative to its first frame,
+#: that a GNS rollout passes without a warning. The MPM flows of the granular training and
+#: validation sets (224 trajectories, 16 particles per node) never exceed 1.08.
+COMPACTION_WARN = 2.0
+
+
+class CompactionWarning(UserWarning):
+    """A GNS rollout packed its nodes far closer than granular matter packs."""
+
+
+def _pairs(nbrs) -> int:
+    n = nbrs.reference_position.shape[0]
+    return int((np.asarray(nbrs.idx[0]) < n).sum())
+
+
+def warn_if_compacted(neighbors: NeighborBuilder, x0, nbrs, frame: int,
+                      limit: float = COMPACTION_WARN) -> float:
+    """Warn (:class:`CompactionWarning`) when the list ``nbrs``, allocated at rollout frame
+    ``frame``, holds more than ``limit`` times the neighbour pairs of the first frame's
+    positions ``x0`` (N, d) m. Called on a re-allocation (outside jit), the only time a
+    rollout's pair count can have grown past its head-room. Returns the ratio."""
+    first = max(_pairs(neighbors.allocate(x0)), 1)
+    ratio = _pairs(nbrs) / first
+    if ratio > limit:
+        import warnings
+
+        warnings.warn(
+            f"GNS rollout: the nodes compacted to {ratio:.1f}x the neighbour pairs of the "
+            f"first frame by frame {frame} ({_pairs(nbrs)} against {first}); granular "
+            f"matter does not compress like that (the MPM training flows stay below "
+            f"1.1x), so the model is outside what it learnt and this prediction is not "
+            "trustworthy", CompactionWarning, stacklevel=2)
+    return ratio
