@@ -175,3 +175,12 @@ def test_compaction_warning_fires_on_packing_not_on_a_moved_or_spread_flow(sim, 
     with pytest.warns(CompactionWarning, match="by frame 9"):
         ratio = warn_if_compacted(nb, x0, nb.allocate(0.4 + (x0 - 0.3) / 3), 9)
     assert ratio > 5
+    # through GNS.reallocate, on a later retry too (a rerun rollout overflows further on)
+    from diffgns.interface import ParticleFrame
+
+    squeezed = 0.4 + (x0 - 0.3) / 3
+    state = gns.init(np.repeat(x0[:, None], C + 1, 1), np.full(len(x0), 6, np.int32))
+    frames = ParticleFrame(np.stack([x0, x0, squeezed]), None, None, None)
+    for attempt in (0, 2):
+        with pytest.warns(CompactionWarning, match="by frame 2"):
+            gns.reallocate(state, frames, 3, attempt)

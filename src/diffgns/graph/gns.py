@@ -372,8 +372,8 @@ class GNS:
         k = max(int(first_bad) - 1, 0)
         x = frames.positions[k]
         nbrs = self.neighbors.reallocate(x, state.nbrs, attempt)
-        if attempt == 0:
-            warn_if_compacted(self.neighbors, frames.positions[0], nbrs, k)
+        # every attempt: a retry reruns the rollout, which may overflow again further on
+        warn_if_compacted(self.neighbors, frames.positions[0], nbrs, k)
         return state._replace(nbrs=nbrs)
 
     def trajectory(self, params: GNSParams, frames: ParticleFrame, particle_type
