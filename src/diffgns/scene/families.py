@@ -18,8 +18,9 @@ Families (:data:`FAMILIES`):
 Held-out compositions (:data:`HELDOUT_FAMILIES`), never in a training set, each a
 composition of training families' physics that no training scene shows:
 
-* ``column_pair``: a column at rest against each side wall; the two collapses run toward
-  each other and meet (the flows of ``columns``, met head-on as in ``collision``);
+* ``column_pair``: a column at rest against each side wall, the gap between them at most
+  the sum of their heights, so that the two collapses run toward each other and (at low
+  and moderate friction) meet: the flows of ``columns``, met head-on as in ``collision``;
 * ``column_hit``: a column at rest against a side wall struck by a mass thrown at it (a
   ``columns`` collapse set off by a ``squares`` impact).
 
