@@ -37,14 +37,11 @@ def node_spread(positions, factor: int) -> tuple[float, float]:
     ``positions`` (T, N, d) from their cluster means (clusters of frame 0)."""
     import numpy as np
 
-    from diffgns.graph.data import coarse_grain_map
+    from diffgns.graph.data import cluster_means, coarse_grain_map
 
     cid = coarse_grain_map(positions[0], factor)
-    n = cid.max() + 1
-    mean = np.zeros((n, positions.shape[-1]))
-    np.add.at(mean, cid, positions[-1])
-    mean /= np.bincount(cid, minlength=n)[:, None]
-    r = np.sqrt(((positions[-1] - mean[cid]) ** 2).sum(-1))
+    last = np.asarray(positions[-1], np.float64)
+    r = np.sqrt(((last - cluster_means(last, cid)[cid]) ** 2).sum(-1))
     return float(np.sqrt((r ** 2).mean())), float(np.percentile(r, 99))
 
 

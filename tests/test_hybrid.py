@@ -321,3 +321,30 @@ def test_keep_inside_limits_each_axis_apart():
     # the one-factor limiter would have scaled the x stretch too
     unlimited = node[:, None] + offset + step
     assert float(unlimited[1].min()) < margin
+
+
+def test_hybrid_reallocation_checks_node_compaction_like_the_gns(model):
+    """The hybrid re-allocates its node list through the GNS's one mechanism
+    (``GNS.grown_neighbors``): nodes squeezed to a third of their spread warn, nodes
+    merely moved do not."""
+    import warnings
+
+    from diffgns.graph.gns import CompactionWarning
+    from diffgns.hybrid.simulator import HybridFrame
+
+    gns, _, _ = model
+    sim = MPM(small_scene())
+    hyb = Hybrid(sim, gns, 2, 4, Schedule(gns_frames=8, mpm_frames=1))
+    state = hyb.init(sim.init())
+    x0 = np.asarray(hyb.nodes(sim.init()))
+    centre = x0.mean(0)
+
+    def frames(last):
+        nodes = np.stack([x0, x0, last])
+        return HybridFrame(None, None, nodes, None, None, None, None)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CompactionWarning)
+        hyb.reallocate(state, frames(x0 + np.float32([0.01, 0.0])), 3, 0)
+    with pytest.warns(CompactionWarning, match="by frame 2"):
+        hyb.reallocate(state, frames(centre + (x0 - centre) / 3), 3, 0)

@@ -44,6 +44,15 @@ def coarse_grain_map(x0: np.ndarray, factor: int) -> np.ndarray:
     return idx.reshape(-1)
 
 
+def cluster_means(a: np.ndarray, cid: np.ndarray) -> np.ndarray:
+    """Means over the clusters ``cid`` (N,) (:func:`coarse_grain_map`) of ``a`` (..., N, k):
+    shape (..., cid.max() + 1, k) (float64: the sums divided by the integer counts)."""
+    n = int(cid.max()) + 1
+    out = np.zeros((*a.shape[:-2], n, a.shape[-1]), a.dtype)
+    np.add.at(out, (..., cid, slice(None)), a)
+    return out / np.bincount(cid, minlength=n)[:, None]
+
+
 def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajectory:
     """Nodes = cluster means of ``factor`` particles (:func:`coarse_grain_map`, 2D or 3D);
     frames every ``frame_stride``-th."""
@@ -54,14 +63,7 @@ def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajec
     if factor > 1:
         cid = coarse_grain_map(pos[0], factor)
         n = cid.max() + 1
-        count = np.bincount(cid, minlength=n)
-
-        def mean(a):
-            out = np.zeros((*a.shape[:-2], n, a.shape[-1]), a.dtype)
-            np.add.at(out, (..., cid, slice(None)), a)
-            return out / count[:, None]
-
-        pos, vel = mean(pos), mean(vel)
+        pos, vel = cluster_means(pos, cid), cluster_means(vel, cid)
         first = np.zeros(n, np.int64)
         first[cid[::-1]] = np.arange(len(cid))[::-1]
         ptype, mat = ptype[first], mat[first]

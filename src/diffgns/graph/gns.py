@@ -44,7 +44,7 @@ import numpy as np
 from diffgns.clamp import ClampCount, clamp_positions
 from diffgns.graph.features import ParticleStats, edge_features, node_features
 from diffgns.graph.geometry import Geometry
-from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges
+from diffgns.graph.neighbors import NeighborBuilder, did_overflow, edges, n_pairs
 from diffgns.graph.networks import EncodeProcessDecode, init_params
 from diffgns.interface import ParticleFrame
 from diffgns.trajectory import KINEMATIC, Trajectory
@@ -369,12 +369,19 @@ class GNS:
                    attempt: int) -> GNSState:
         """``state`` with a larger neighbour list (outside jit), sized at the last valid
         frame before the overflow at frame ``first_bad`` of ``frames``."""
+        return state._replace(nbrs=self.grown_neighbors(state.nbrs, frames.positions,
+                                                        first_bad, attempt))
+
+    def grown_neighbors(self, nbrs, positions, first_bad: int, attempt: int):
+        """A larger list than ``nbrs`` (outside jit), sized at the last valid frame of
+        ``positions`` ((T, N, d) m: a rollout's nodes) before the overflow at ``first_bad``,
+        with the compaction check (:func:`warn_if_compacted`) against frame 0. Every
+        attempt is checked: a retry reruns the rollout, which may overflow again further
+        on. The one re-allocation of the GNS's nodes, in GNS and hybrid rollouts alike."""
         k = max(int(first_bad) - 1, 0)
-        x = frames.positions[k]
-        nbrs = self.neighbors.reallocate(x, state.nbrs, attempt)
-        # every attempt: a retry reruns the rollout, which may overflow again further on
-        warn_if_compacted(self.neighbors, frames.positions[0], nbrs, k)
-        return state._replace(nbrs=nbrs)
+        grown = self.neighbors.reallocate(positions[k], nbrs, attempt)
+        warn_if_compacted(self.neighbors, positions[0], grown, k)
+        return grown
 
     def trajectory(self, params: GNSParams, frames: ParticleFrame, particle_type
                    ) -> Trajectory:
@@ -398,25 +405,21 @@ class CompactionWarning(UserWarning):
     """A GNS rollout packed its nodes far closer than granular matter packs."""
 
 
-def _pairs(nbrs) -> int:
-    n = nbrs.reference_position.shape[0]
-    return int((np.asarray(nbrs.idx[0]) < n).sum())
-
-
 def warn_if_compacted(neighbors: NeighborBuilder, x0, nbrs, frame: int,
                       limit: float = COMPACTION_WARN) -> float:
     """Warn (:class:`CompactionWarning`) when the list ``nbrs``, allocated at rollout frame
     ``frame``, holds more than ``limit`` times the neighbour pairs of the first frame's
     positions ``x0`` (N, d) m. Called on a re-allocation (outside jit), the only time a
     rollout's pair count can have grown past its head-room. Returns the ratio."""
-    first = max(_pairs(neighbors.allocate(x0)), 1)
-    ratio = _pairs(nbrs) / first
+    first = max(n_pairs(neighbors.allocate(x0)), 1)
+    now = n_pairs(nbrs)
+    ratio = now / first
     if ratio > limit:
         import warnings
 
         warnings.warn(
             f"GNS rollout: the nodes compacted to {ratio:.1f}x the neighbour pairs of the "
-            f"first frame by frame {frame} ({_pairs(nbrs)} against {first}); granular "
+            f"first frame by frame {frame} ({now} against {first}); granular "
             f"matter does not compress like that (the MPM training flows stay below "
             f"1.1x), so the model is outside what it learnt and this prediction is not "
             "trustworthy", CompactionWarning, stacklevel=2)

@@ -45,6 +45,7 @@ from jax_md import partition, space
 
 __all__ = [
     "NeighborBuilder", "brute_force_edges", "capacity", "did_overflow", "edge_set", "edges",
+    "n_pairs",
 ]
 
 
@@ -190,3 +191,9 @@ def capacity(nbrs: partition.NeighborList) -> int:
     """Number of edge slots ``K`` of the list (static)."""
     return int(nbrs.idx.shape[1])
 
+
+def n_pairs(nbrs: partition.NeighborList) -> int:
+    """Number of valid (ordered) neighbour pairs the list holds, <= :func:`capacity`
+    (host value: outside jit)."""
+    n = nbrs.reference_position.shape[0]
+    return int((np.asarray(nbrs.idx[0]) < n).sum())

@@ -288,9 +288,10 @@ class Hybrid:
     def reallocate(self, state: HybridState, frames: HybridFrame, first_bad: int,
                    attempt: int) -> HybridState:
         """``state`` with a larger node neighbour list (outside jit), sized at the nodes of
-        the last valid frame before the overflow at frame ``first_bad``."""
-        x = frames.nodes[max(int(first_bad) - 1, 0)]
-        return state._replace(nbrs=self.gns.neighbors.reallocate(x, state.nbrs, attempt))
+        the last valid frame before the overflow at frame ``first_bad``, with the GNS's
+        compaction check (:meth:`~diffgns.graph.gns.GNS.grown_neighbors`)."""
+        return state._replace(nbrs=self.gns.grown_neighbors(state.nbrs, frames.nodes,
+                                                            first_bad, attempt))
 
     # ---------------------------------------------------------------- frames
     def _energy_change(self, params, hist, x_next):
