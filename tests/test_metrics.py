@@ -35,3 +35,53 @@ def test_per_family_summary_flags_any_case_over_a_target():
     assert t["all"]["cases"] == 4 and not t["all"]["met"]
     with pytest.raises(ValueError, match="4 rows for 3"):
         per_family(rows, fams[:3])
+
+
+def test_matched_position_error_ignores_labels_and_measures_a_shift():
+    from diffgns.metrics import MATCHED_MAX_POINTS, matched_position_error
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 0.5, (60, 2))
+    perm = rng.permutation(60)
+    assert matched_position_error(x[perm], x) == pytest.approx(0.0, abs=1e-12)
+    per_point = np.linalg.norm(x[perm] - x, axis=1).mean()
+    assert per_point > 0.1  # the labelled error sees the relabelling
+    # a rigid shift by d is matched to itself: the error is exactly d (no shorter matching)
+    assert matched_position_error(x + [0.003, -0.004], x) == pytest.approx(0.005)
+    # two points, each 1 m from the other's place: matching swaps them, error 0; a third
+    # point 0.3 m off keeps its own error, averaged over 3
+    a = np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 5.0]])
+    b = np.array([[1.0, 0.0], [0.0, 0.0], [5.0, 5.3]])
+    assert matched_position_error(b, a) == pytest.approx(0.1)
+    # at most the per-point error, on random pairs
+    y = x + rng.normal(0, 0.05, x.shape)
+    assert matched_position_error(y, x) <= np.linalg.norm(y - x, axis=1).mean() + 1e-12
+    with pytest.raises(ValueError, match="one shape"):
+        matched_position_error(x, x[:-1])
+    big = np.zeros((MATCHED_MAX_POINTS + 1, 2))
+    with pytest.raises(ValueError, match="at most"):
+        matched_position_error(big, big)
+
+
+def test_score_reports_the_matched_error_beside_the_per_node_one():
+    from diffgns.graph.evaluate import per_family, score
+    from diffgns.trajectory import Trajectory
+
+    rng = np.random.default_rng(1)
+    x0 = rng.uniform(0.1, 0.3, (40, 2))
+    xT = x0 + [0.2, 0.0]
+    ref = np.stack([x0, xT])
+    perm = rng.permutation(40)
+    pred = np.stack([x0, xT[perm]])  # right deposit, nodes relabelled
+
+    def traj(p):
+        return Trajectory(positions=p, velocities=np.zeros_like(p),
+                          particle_type=np.zeros(40, int), material=np.full(40, 30.0),
+                          frame_dt=0.01, bounds=((0.0, 0.8), (0.0, 0.35)))
+
+    row = score(traj(pred), traj(ref))
+    assert row["final_matched_error_rel_displacement"] == pytest.approx(0.0, abs=1e-9)
+    assert row["final_position_error_rel_displacement"] > 0.2
+    t = per_family([dict(row, family="squares")], ["squares"])
+    assert t["squares"]["final_matched_error_rel_displacement_max"] == pytest.approx(0, abs=1e-9)
+    assert not t["squares"]["met"]  # the target stays the per-node error
