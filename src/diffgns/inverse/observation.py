@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgns.graph.data import coarse_grain_map
+from diffgns.graph.data import cluster_means, coarse_grain_map
 from diffgns.hybrid.handoff import node_means
 from diffgns.interface import rollout
 from diffgns.inverse.parameters import check_names, set_params
@@ -39,10 +39,7 @@ def coarse_grain_positions(positions: np.ndarray, factor: int) -> np.ndarray:
     positions (T, N, 2) (numpy; any particle set)."""
     positions = np.asarray(positions)
     cid = coarse_grain_map(positions[0], factor)
-    n, N = int(cid.max()) + 1, len(cid)
-    mean = np.zeros((n, N), positions.dtype)  # row i: 1/count over the particles of node i
-    mean[cid, np.arange(N)] = 1.0 / np.bincount(cid, minlength=n)[cid]
-    return np.matmul(mean, positions)
+    return cluster_means(positions, cid).astype(positions.dtype)  # the dataset's node means
 
 
 class SceneObservation:
