@@ -2,13 +2,15 @@
 
     .venv/bin/python benchmarks/granular_snapshots.py --model checkpoints/general_warm/g1/model \
         --data data/granular_valid.h5 --cases 8 10 11 6 [--frames 0 10 25 50 -1] \
-        [--out docs/results/granular_snapshots_g1.png]
+        [--png docs/results/granular_snapshots_g1.png] [--out granular_snapshots.json]
 
 For each case of ``--data`` the model rolls out from the first ``history + 1`` frames (its own
 nodes and frame stride, in the case's box with its obstacles: ``rollout_reference``, as the
 held-out tables); one row per case, one panel per frame (GNS frames, -1 the last): the MPM's
 nodes in black, the GNS's in red, the obstacles in blue, the box as the axes. Nothing is
-timed. Writes the PNG and prints each case's family and final position error (m).
+timed (accuracy only: the protocol records the load and never refuses the run). Writes the
+PNG, and ``benchmarks/results/<out>`` with each case's family and final mean position error
+(m), which it also prints.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import protocol
 
 
 def main(argv=None) -> None:
@@ -25,8 +28,11 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", type=int, nargs="+", required=True, help="trajectory indices")
     ap.add_argument("--frames", type=int, nargs="+", default=[0, 10, 25, 50, -1],
                     help="GNS frames to draw (-1: the last)")
-    ap.add_argument("--out", default="granular_snapshots.png", help="PNG path")
+    ap.add_argument("--png", default="granular_snapshots.png", help="PNG path")
+    ap.add_argument("--out", default="granular_snapshots.json", help="results JSON")
+    protocol.add_arguments(ap)
     args = ap.parse_args(argv)
+    run = protocol.start(args, "granular_snapshots", timed=False)
 
     import matplotlib
 
@@ -47,13 +53,15 @@ def main(argv=None) -> None:
         raise SystemExit(f"--cases {bad}: {args.data} has cases 0..{len(trajs) - 1}")
     nr, nc = len(args.cases), len(args.frames)
     fig, axs = plt.subplots(nr, nc, figsize=(3.2 * nc, 2.0 * nr), squeeze=False)
+    rows = []
     for i, c in enumerate(args.cases):
         ref = trajs[c]
         pred, _ = rollout_reference(gns, params, ref, timed=False)
         xr, xp = np.asarray(ref.positions), np.asarray(pred.positions)
         box = np.asarray(ref.bounds, float)
         err = float(np.linalg.norm(xp[-1] - xr[-1], axis=-1).mean())
-        print(f"case {c} ({families[c]}): final mean position error {err:.4f} m")
+        rows.append(dict(case=c, family=families[c], final_mean_position_error_m=err))
+        run.print(f"case {c} ({families[c]}): final mean position error {err:.4f} m")
         for j, f in enumerate(args.frames):
             f = f % len(xr)
             ax = axs[i, j]
@@ -70,9 +78,11 @@ def main(argv=None) -> None:
             ax.set_title(f"case {c} ({families[c]}), frame {f}", fontsize=7)
     fig.suptitle(f"{args.model}: MPM (black) and GNS (red) nodes", fontsize=8)
     fig.tight_layout()
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=80)
-    print(f"wrote {args.out}")
+    Path(args.png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.png, dpi=80)
+    path = run.finish(args.out, dict(model=str(args.model), data=str(args.data),
+                                     frames=args.frames, png=str(args.png), rows=rows))
+    run.print(f"wrote {args.png} and {path}")
 
 
 if __name__ == "__main__":

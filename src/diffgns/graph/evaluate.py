@@ -98,7 +98,7 @@ def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | Non
     if xr.shape[1] <= metrics.MATCHED_MAX_POINTS and np.isfinite(xp[-1]).all():
         matched = metrics.matched_position_error(xp[-1], xr[-1])
         out.update(final_matched_error_m=matched,
-                   final_matched_error_rel_displacement=matched / max(disp, 1e-12))
+                   final_matched_error_rel_displacement=float(matched / max(disp, 1e-12)))
     for h in HORIZONS:
         if start + h < T:
             out[f"mse_{h}"] = float(mse[start + h])
