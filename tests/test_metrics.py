@@ -85,3 +85,7 @@ def test_score_reports_the_matched_error_beside_the_per_node_one():
     t = per_family([dict(row, family="squares")], ["squares"])
     assert t["squares"]["final_matched_error_rel_displacement_max"] == pytest.approx(0, abs=1e-9)
     assert not t["squares"]["met"]  # the target stays the per-node error
+    # a family where one case lacks it (too many points to match) gets no partial summary
+    bare = {k: v for k, v in row.items() if not k.startswith("final_matched")}
+    t2 = per_family([row, bare], ["squares", "squares"])
+    assert "final_matched_error_rel_displacement_mean" not in t2["squares"]

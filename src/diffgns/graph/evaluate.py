@@ -9,7 +9,7 @@ scene (``flow_runout_*``, :func:`diffgns.metrics.flow_runout`),
 mean particle position error at the last frame relative to the mean reference displacement,
 the same under the best one-to-one matching of the final positions (``final_matched_*``, a
 correspondence-free error: :func:`diffgns.metrics.matched_position_error`; up to
-:data:`~diffgns.metrics.MATCHED_MAX_POINTS` points),
+:data:`~diffgns.metrics.MATCHED_MAX_POINTS` points and a finite prediction),
 position MSE at horizons 1, 10, 50, 100 and the full rollout, and the final kinetic energy.
 """
 from __future__ import annotations
@@ -149,7 +149,7 @@ def per_family(rows: list[dict], families: list[str], targets: dict | None = Non
     """Per-family summary of :func:`evaluate` rows (one family name per row, in order).
 
     For each family: case count, mean and max of every target metric (default
-    :data:`TARGETS`) and of each :data:`REPORTED` metric the rows carry, how many cases are
+    :data:`TARGETS`) and of each :data:`REPORTED` metric every row carries, how many cases are
     outside the domain or not finite, the largest final kinetic energy (J/kg), and
     ``met``: every case within every target, inside, finite.
     A key ``"all"`` summarises every row. ValueError when the lengths differ.
@@ -166,9 +166,9 @@ def per_family(rows: list[dict], families: list[str], targets: dict | None = Non
             vals = np.array([r[k] for r in mine], float)
             entry[f"{k}_mean"], entry[f"{k}_max"] = float(vals.mean()), float(vals.max())
             ok &= bool(np.all(vals <= limit))
-        for k in REPORTED:
-            vals = np.array([r[k] for r in mine if k in r], float)
-            if len(vals):
+        for k in REPORTED:  # only where every case has it (score skips > 2,048 points)
+            if all(k in r for r in mine):
+                vals = np.array([r[k] for r in mine], float)
                 entry[f"{k}_mean"], entry[f"{k}_max"] = float(vals.mean()), float(vals.max())
         entry["outside_domain"] = sum(not r.get("inside_domain", True) for r in mine)
         entry["not_finite"] = sum(not r.get("finite", True) for r in mine)
