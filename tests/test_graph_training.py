@@ -416,10 +416,10 @@ def test_early_windows_are_drawn_weight_times_as_often():
     plain, early = WindowSampler(trajs, 5), WindowSampler(trajs, 5, early_frames=5,
                                                           early_weight=10.0)
     a, b = np.random.default_rng(3), np.random.default_rng(3)
-    assert [plain.draw_start(a, n) for _ in range(50)] == \
+    assert [plain.draw_start(a, 0) for _ in range(50)] == \
         [int(b.integers(0, n)) for _ in range(50)]
     rng = np.random.default_rng(0)
-    starts = np.array([early.draw_start(rng, n) for _ in range(40000)])
+    starts = np.array([early.draw_start(rng, 0) for _ in range(40000)])
     assert starts.min() == 0 and starts.max() == n - 1
     want = 5 * 10 / (5 * 10 + n - 5)
     assert abs(np.mean(starts < 5) - want) < 0.01
@@ -427,12 +427,69 @@ def test_early_windows_are_drawn_weight_times_as_often():
     assert abs(counts[:5].mean() / counts[5:].mean() - 10.0) < 1.0  # each early start 10x
     # K beyond the trajectory: every start early, so uniform again
     short = WindowSampler(trajs, 5, early_frames=500, early_weight=3.0)
-    s = np.array([short.draw_start(rng, n) for _ in range(20000)])
+    s = np.array([short.draw_start(rng, 0) for _ in range(20000)])
     assert abs(np.bincount(s, minlength=n).std() / (20000 / n) - 0.1) < 0.05
     for bad in (dict(early_frames=-1), dict(early_weight=0.0), dict(early_weight=np.inf),
                 dict(early_frames=2.5)):
         with pytest.raises(ValueError, match="early windows"):
             WindowSampler(trajs, 5, **bad)
+
+
+def kicked(T=60, frame=30, kick=1e-3, n_kin=2):
+    """A 16-node block in free fall (frame units) whose node 0 gets an extra velocity
+    ``kick`` at ``frame`` (its acceleration deviates at that frame alone), and ``n_kin``
+    kinematic nodes that jump about (to be ignored)."""
+    from diffgns.trajectory import KINEMATIC
+
+    t = np.arange(T)[:, None, None]
+    g = np.stack(np.meshgrid(np.arange(4), np.arange(4), indexing="ij"), -1).reshape(-1, 2)
+    pos = 0.3 + 0.02 * g[None] + np.array([1e-3, 0.0]) * t + 0.5 * np.array([0, -2e-4]) * t**2
+    pos[frame + 1:, 0, 0] += kick * (np.arange(T - frame - 1) + 1)
+    junk = np.random.default_rng(0).uniform(0, 0.8, (T, n_kin, 2))
+    pos = np.concatenate([pos, junk], 1)
+    ptype = np.array([SAND] * 16 + [KINEMATIC] * n_kin, np.int32)
+    return Trajectory(positions=jnp.asarray(pos), velocities=jnp.zeros_like(jnp.asarray(pos)),
+                      particle_type=jnp.asarray(ptype), material=jnp.full(16 + n_kin, 0.5),
+                      bounds=BOUNDS)
+
+
+def test_window_activity_is_zero_in_free_flight_and_measures_a_kick_at_its_target_frames():
+    """One node of 16 kicked at frame f: its acceleration deviates by k there, so the frame's
+    RMS deviation from the mean is k sqrt(15)/16 (analytic); a window is active exactly when
+    one of its target frames s + C .. s + C + unroll is f; kinematic nodes never count."""
+    from diffgns.graph.data import window_activity
+
+    T, f, k, C = 60, 30, 1e-3, 5
+    t = kicked(T, f, k)
+    for unroll in (0, 2):
+        L = C + 2 + unroll
+        act = window_activity(t.positions, t.particle_type, C, L)
+        assert act.shape == (T - L + 1,)
+        active = {s for s in range(T - L + 1) if s + C <= f <= s + C + unroll}
+        want = np.array([k * np.sqrt(15) / 16 if s in active else 0.0
+                         for s in range(T - L + 1)])
+        np.testing.assert_allclose(act, want, atol=1e-3 * k)  # float32 positions
+
+
+def test_active_windows_draw_starts_in_proportion_to_one_plus_weight_times_activity():
+    """With weight W the kicked window (activity A, mean activity A / n over n starts) is
+    drawn with probability (1 + W n) / (n + W n) of all starts; W = 0 draws the starts
+    exactly as before; negative or infinite weights are refused."""
+    T, f, C = 60, 30, 5
+    trajs = [kicked(T, f)]
+    n = T - (C + 2) + 1
+    plain, active = WindowSampler(trajs, C), WindowSampler(trajs, C, active_weight=4.0)
+    a, b = np.random.default_rng(5), np.random.default_rng(5)
+    assert [WindowSampler(trajs, C, active_weight=0.0).draw_start(a, 0)
+            for _ in range(50)] == [plain.draw_start(b, 0) for _ in range(50)]
+    rng = np.random.default_rng(1)
+    starts = np.array([active.draw_start(rng, 0) for _ in range(40000)])
+    want = (1 + 4.0 * n) / (n + 4.0 * n)
+    assert abs(np.mean(starts == f - C) - want) < 0.01
+    assert starts.min() >= 0 and starts.max() == n - 1
+    for bad in (-1.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match="active windows"):
+            WindowSampler(trajs, C, active_weight=bad)
 
 
 def test_early_windows_option_is_parsed_and_rejected_with_a_message():

@@ -59,7 +59,8 @@ def _train(args) -> int:
     train(args.data, args.out, gns_kw, tcfg, valid_path=args.valid, factor=args.coarse_grain,
           frame_stride=args.frame_stride, init_from=args.init_from, pad_to=args.pad_nodes,
           family_weights=_weights(args.family_weights),
-          early_windows=_early_windows(args.early_windows), mirror=args.mirror)
+          early_windows=_early_windows(args.early_windows), mirror=args.mirror,
+          active_windows=args.active_windows)
     from diffgns.distributed import is_main
 
     if is_main():
@@ -219,6 +220,10 @@ def register(sub) -> None:
                    help="particles: draw the windows that start in each trajectory's first "
                         "FRAMES (strided) frames WEIGHT times as often, e.g. 5:4 (a flow's "
                         "release from rest)")
+    t.add_argument("--active-windows", type=non_negative, default=0.0, metavar="W",
+                   help="particles: draw each window start with weight 1 + W x its activity "
+                        "over the mean (how much its nodes' accelerations differ: impacts, "
+                        "releases, flows above free flight and rest; default 0 = uniform)")
     t.add_argument("--mirror", type=probability, default=0.0, metavar="P",
                    help="particles: reflect each training window about its box's vertical "
                         "mid-plane with probability P (flows to both sides from one-sided "

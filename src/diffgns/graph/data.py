@@ -15,7 +15,7 @@ import numpy as np
 from diffgns.graph.geometry import obstacle_array, walls_array
 from diffgns.io.dataset import compute_statistics, iter_dataset, read_metadata
 from diffgns.io.npz import load_gns_npz
-from diffgns.trajectory import Trajectory
+from diffgns.trajectory import KINEMATIC, Trajectory
 
 
 def coarse_grain_map(x0: np.ndarray, factor: int) -> np.ndarray:
@@ -128,6 +128,34 @@ def mirror_window(positions: np.ndarray, bounds, obstacles=()) -> tuple[np.ndarr
     return x, obs.tolist()
 
 
+def window_activity(positions: np.ndarray, particle_type: np.ndarray, history: int,
+                    length: int) -> np.ndarray:
+    """How much each window's targets differ from one motion shared by all its nodes.
+
+    The activity of frame t is the RMS over the non-kinematic nodes of the deviation of their
+    acceleration (second difference of positions) from the frame's mean acceleration: zero
+    in free flight and at rest (every node accelerates alike), large where contacts act
+    (an impact, a release, a flow); a window's activity is the largest over its target
+    frames ``start + history .. start + length - 2``.
+
+    Args:
+        positions: (T, N, d) positions of one trajectory, m.
+        particle_type: (N,) types; KINEMATIC nodes are left out.
+        history: velocities in the input (C); length: frames per window (C + 2 + unroll).
+    Returns:
+        (T - length + 1,) activity of each window start, m per frame^2.
+    """
+    x = np.asarray(positions, np.float64)[:, np.asarray(particle_type) != KINEMATIC]
+    a = x[2:] - 2.0 * x[1:-1] + x[:-2]  # (T - 2, N, d): acceleration of frames 1 .. T - 2
+    dev = a - a.mean(1, keepdims=True)
+    act = np.sqrt((dev ** 2).sum(-1).mean(1)) if x.shape[1] else np.zeros(len(a))
+    n_starts = len(x) - length + 1
+    targets = length - history - 1  # target frames per window: 1 + unroll
+    # frame f's activity is act[f - 1]; window s's targets are frames s + C .. s + C + unroll
+    return np.stack([act[history - 1 + k: history - 1 + k + n_starts]
+                     for k in range(targets)]).max(0)
+
+
 @dataclass
 class WindowSampler:
     """Random windows of ``history + 2 + unroll`` frames, one node-count group per batch,
@@ -147,7 +175,13 @@ class WindowSampler:
     the reflected scene; a model trained on columns against the left wall alone fails on
     their mirror images (`gns_cg16_pfn` on the granular validation columns: 1-2% position
     error against the left wall, 92-143% against the right). 0 draws no random number
-    (windows exactly as before the option existed)."""
+    (windows exactly as before the option existed).
+
+    ``active_weight``: a window start is drawn with probability proportional to ``1 +
+    active_weight * A / mean(A)`` within its trajectory, A its :func:`window_activity` and
+    the mean over every window of every trajectory: impacts and releases, a few frames of
+    ~250 in a thrown mass's trajectory, are drawn more often than free flight and rest.
+    Combined with the early windows by multiplication; 0 leaves the starts as they were."""
 
     trajs: list
     history: int = 5
@@ -155,6 +189,7 @@ class WindowSampler:
     early_frames: int = 0
     early_weight: float = 1.0
     mirror: float = 0.0
+    active_weight: float = 0.0
 
     def __post_init__(self):
         if not (isinstance(self.early_frames, int) and self.early_frames >= 0
@@ -164,6 +199,9 @@ class WindowSampler:
                              "a finite number > 0")
         if not 0.0 <= self.mirror <= 1.0:
             raise ValueError(f"mirror = {self.mirror!r} must be a probability in [0, 1]")
+        if not (np.isfinite(self.active_weight) and self.active_weight >= 0):
+            raise ValueError(f"active windows: active_weight = {self.active_weight!r} must be "
+                             "a finite number >= 0")
         check_one_dimension(self.trajs, "the training trajectories")
         self.max_obstacles = max([len(getattr(t, "obstacles", ())) for t in self.trajs] + [0])
         self.groups: dict[int, list[int]] = {}
@@ -178,6 +216,27 @@ class WindowSampler:
                           for g in self.groups.values()], float)
         self._p = sizes / sizes.sum()
         self._keys = list(self.groups)
+        self._start_cdf = self.start_cdfs()
+
+    def start_cdfs(self) -> list[np.ndarray] | None:
+        """Per trajectory, the cumulative weights of its window starts (early windows times
+        active windows), or None when every start is equally likely."""
+        early = self.early_frames > 0 and self.early_weight != 1.0
+        if not early and self.active_weight == 0:
+            return None
+        weights = []
+        for t in self.trajs:
+            w = np.ones(t.n_frames - self.length + 1)
+            w[:self.early_frames] = self.early_weight
+            weights.append(w)
+        if self.active_weight:
+            acts = [window_activity(t.positions, t.particle_type, self.history, self.length)
+                    for t in self.trajs]
+            scale = float(np.mean(np.concatenate(acts)))
+            if scale > 0:
+                weights = [w * (1.0 + self.active_weight * a / scale)
+                           for w, a in zip(weights, acts)]
+        return [np.cumsum(w) for w in weights]
 
     def sample(self, rng: np.random.Generator, batch: int,
                group_rng: np.random.Generator | None = None) -> dict:
@@ -192,8 +251,9 @@ class WindowSampler:
         """``batch`` random windows of the trajectories ``members`` (one node count)."""
         pos, ptype, mat, walls, obs = [], [], [], [], []
         for _ in range(batch):
-            t = self.trajs[members[rng.integers(len(members))]]
-            x, p, m = self.window(t, self.draw_start(rng, t.n_frames - self.length + 1))
+            i = members[rng.integers(len(members))]
+            t = self.trajs[i]
+            x, p, m = self.window(t, self.draw_start(rng, i))
             o = getattr(t, "obstacles", ())
             if self.mirror and rng.random() < self.mirror:
                 x, o = mirror_window(x, t.bounds, o)
@@ -207,16 +267,15 @@ class WindowSampler:
                     material=np.stack(mat), walls=np.stack(walls).astype(dtype),
                     obstacles=np.stack(obs).astype(dtype))
 
-    def draw_start(self, rng: np.random.Generator, n_starts: int) -> int:
-        """A window start in ``[0, n_starts)``: uniform, or with the first ``early_frames``
-        starts ``early_weight`` times as likely as each later one."""
-        k = min(self.early_frames, n_starts)
-        if k == 0 or self.early_weight == 1.0:
+    def draw_start(self, rng: np.random.Generator, i: int) -> int:
+        """A window start of trajectory ``i``: uniform, or weighted by :meth:`start_cdfs`
+        (early and active windows)."""
+        n_starts = self.trajs[i].n_frames - self.length + 1
+        if self._start_cdf is None:
             return int(rng.integers(0, n_starts))
-        u = rng.random() * (k * self.early_weight + (n_starts - k))
-        early = k * self.early_weight
-        return min(int(u / self.early_weight), k - 1) if u < early else \
-            min(k + int(u - early), n_starts - 1)
+        cdf = self._start_cdf[i]
+        return min(int(np.searchsorted(cdf, rng.random() * cdf[-1], side="right")),
+                   n_starts - 1)
 
     def window(self, t: Trajectory, start: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The window of ``t`` from frame ``start``: positions (L, N, d), particle_type

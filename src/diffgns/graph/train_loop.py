@@ -244,17 +244,19 @@ def _families(train_paths) -> list[str] | None:
 
 def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int = 1,
                  family_weights: dict | None = None,
-                 early_windows: tuple[int, float] | None = None, mirror: float = 0.0
-                 ) -> WindowSampler:
+                 early_windows: tuple[int, float] | None = None, mirror: float = 0.0,
+                 active_windows: float = 0.0) -> WindowSampler:
     """The training windows: per scene family (equal weights unless ``family_weights``),
     node counts padded up to a multiple of ``pad_to`` (fewer compiled programs), when
     ``families`` names one per trajectory; else plain node-count groups. ``early_windows``
     ``(frames, weight)``: windows starting in each trajectory's first ``frames`` (strided)
     frames drawn ``weight`` times as often (:class:`WindowSampler`); ``mirror``: probability
     of reflecting a window about its box's vertical mid-plane
-    (:func:`~diffgns.graph.data.mirror_window`)."""
+    (:func:`~diffgns.graph.data.mirror_window`); ``active_windows``: weight of a window's
+    activity in drawing its start (:func:`~diffgns.graph.data.window_activity`)."""
     frames, weight = early_windows or (0, 1.0)
-    early = dict(early_frames=int(frames), early_weight=float(weight), mirror=float(mirror))
+    early = dict(early_frames=int(frames), early_weight=float(weight), mirror=float(mirror),
+                 active_weight=float(active_windows))
     if families is None:
         if pad_to > 1 or family_weights:
             raise InputError("--pad-nodes/--family-weights", "the training data records no "
@@ -271,13 +273,14 @@ def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int 
 def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None,
           factor: int = 1, frame_stride: int = 1, n_valid: int = 2, progress: bool = True,
           init_from=None, pad_to: int = 1, family_weights: dict | None = None,
-          early_windows: tuple[int, float] | None = None, mirror: float = 0.0):
+          early_windows: tuple[int, float] | None = None, mirror: float = 0.0,
+          active_windows: float = 0.0):
     """Train (or resume) a GNS; returns (gns, params).
 
     Datasets that record a scene family per trajectory (``diffgns dataset --kind
     granular``) are sampled per family (:func:`make_sampler`; ``pad_to``,
-    ``family_weights``; ``early_windows`` and ``mirror`` for any data); every window carries its
-    trajectory's walls and obstacles (:mod:`diffgns.graph.geometry`).
+    ``family_weights``; ``early_windows``, ``mirror`` and ``active_windows`` for any data);
+    every window carries its trajectory's walls and obstacles (:mod:`diffgns.graph.geometry`).
 
     ``init_from``: a model folder whose parameters start a fresh run (fine-tuning, e.g. with
     push-forward); its configuration must equal the one requested here, and the run keeps its
@@ -293,7 +296,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
                          f"{gns.config.dim}D", f"validate on {gns.config.dim}D data")
     families = _families(train_paths)
     sampler = make_sampler(gns, trajs, tcfg, families, pad_to, family_weights, early_windows,
-                           mirror)
+                           mirror, active_windows)
     trainer = Trainer(gns, tcfg)
     C = gns.config.history
     t0 = trajs[0]
@@ -313,6 +316,7 @@ def train(train_paths, out_dir, gns_kw: dict, tcfg: TrainConfig, valid_path=None
                 stats=stats, data=[str(p) for p in train_paths], factor=factor,
                 frame_stride=frame_stride, source=source, pad_to=pad_to,
                 family_weights=family_weights, early_windows=early_windows, mirror=mirror,
+                active_windows=active_windows,
                 families=None if families is None else sorted(set(families)))
     if is_main():
         (out / "train_config.json").write_text(json.dumps(info, indent=2, default=str))
