@@ -1,12 +1,12 @@
 # Shared by the staged training scripts (examples/train_*_gns.sh), sourced after they set
 # DATA, VALID, RUNS, NET and VALIDATE_EVERY.
 #   stage NAME INIT NOISE PUSH STEPS LR LR_FINAL
-# trains stage NAME (seed = its number, or $SEED when set) into $RUNS/NAME from INIT ("-": from scratch) with
-# random-walk noise NOISE (m), push-forward PUSH, STEPS steps and a learning rate decaying
-# from LR to LR_FINAL; a stage whose model/ exists is skipped, an interrupted one resumes
-# from its checkpoint. A stage with no run folder starts from its committed checkpoint,
-# checkpoints/<basename of RUNS>/NAME, when there is one (runs/ is lost with a checkout;
-# commit a stage's folder there to carry it over). DRY=1 prints the commands instead.
+# trains stage NAME (seed = its number, or $SEED when set) into $RUNS/NAME from INIT ("-":
+# from scratch) with random-walk noise NOISE (m), push-forward PUSH, STEPS steps and a
+# learning rate decaying from LR to LR_FINAL; a stage whose model/ exists is skipped, an
+# interrupted one resumes from its checkpoint. A stage with no run folder starts from its
+# committed checkpoint, checkpoints/<basename of RUNS>/NAME, when there is one (runs/ is lost
+# with a checkout; commit a stage's folder there to carry it over). DRY=1 prints the commands instead.
 run() { if [ -n "${DRY:-}" ]; then echo "$@"; else "$@"; fi; }
 
 stage() {

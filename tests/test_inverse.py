@@ -384,3 +384,18 @@ def test_a_scan_starts_the_local_method_in_the_right_basin():
         inverse.optimize(loss, {"friction_angle": 45.0}, gn, scan={"friction_angle": [95.0]})
     with pytest.raises(ValueError, match="not fitted"):
         inverse.optimize(loss, {"friction_angle": 45.0}, gn, scan={"cohesion": [1.0]})
+
+
+def test_progress_line_says_a_rejected_trial_point_has_no_gradient_rather_than_nan():
+    """A trial point rejected on its loss alone records nan gradients (never computed); the
+    progress line names that instead of printing a NaN a user would take for a failure."""
+    from diffgns.inverse.job import format_record
+
+    rec = dict(iteration=4, theta={"friction_angle": 13.475}, loss=0.45, time_s=0.4,
+               rss_mb=1293.0, grad={"friction_angle": float("nan")})
+    line = format_record(rec)
+    assert "nan" not in line.lower() and "not computed" in line and "phi= 13.475" in line
+    rec["grad"] = {"friction_angle": 0.06128}
+    assert "dloss/dphi=+6.128e-02" in format_record(rec)
+    rec.update(theta={"cohesion": 2.0}, grad={"cohesion": float("nan")})
+    assert "dloss/dcohesion=(not computed" in format_record(rec)

@@ -15,6 +15,7 @@ fitted final deposits); its last printed line states the recovered parameters.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -134,15 +135,21 @@ def make_objective(name: str, obs: SceneObservation, observed=None, frame: int =
                                   center=center)
 
 
+def _gradient(g: float) -> str:
+    """A gradient entry of a progress line; nan marks a trial point rejected on its loss
+    alone (:func:`diffgns.inverse.solve`: its gradient was never computed), not a NaN."""
+    return "(not computed: point rejected on its loss)" if math.isnan(g) else f"{g:+.3e}"
+
+
 def format_record(rec: dict) -> str:
     """One progress line of an iteration record of :func:`diffgns.inverse.optimize`."""
     parts = []
     for k, v in rec["theta"].items():
         if k == "friction_angle":
             parts.append(f"phi={v:7.3f} deg  loss={rec['loss']:.3e}  "
-                         f"dloss/dphi={rec['grad'][k]:+.3e}")
+                         f"dloss/dphi={_gradient(rec['grad'][k])}")
         else:
-            parts.append(f"{k}={v:.4g}  dloss/d{k}={rec['grad'][k]:+.3e}")
+            parts.append(f"{k}={v:.4g}  dloss/d{k}={_gradient(rec['grad'][k])}")
     if "friction_angle" not in rec["theta"]:
         parts.append(f"loss={rec['loss']:.3e}")
     return (f"iter {rec['iteration']:2d}  " + "  ".join(parts)
