@@ -34,6 +34,7 @@ import numpy as np
 
 from diffgns import inverse
 from diffgns.inverse import objectives
+from diffgns.inverse.job import gradient_text
 from diffgns.inverse.lsq import least_squares
 from diffgns.inverse.simulators import Column, ColumnCase, gns_simulator, mpm_simulator
 from diffgns.io import figures as viz
@@ -159,7 +160,7 @@ def main(argv=None):
 
     def show(rec):
         th = "  ".join(f"{k}={rec['theta'][k]:.3f}" for k in start)
-        gr = " ".join(f"d/d{k}={rec['grad'][k]:+.2e}" for k in start)
+        gr = " ".join(f"d/d{k}={gradient_text(rec['grad'][k])}" for k in start)
         lm = "" if "accepted" not in rec else f"  lm={rec['damping']:.0e}" + (
             "" if rec["accepted"] else " (step rejected)")
         print(f"iter {rec['iteration']:2d}  {th}  loss={rec['loss']:.3e}  {gr}{lm}  "

@@ -1,6 +1,7 @@
 """The inverse-problem loop, parameter transforms, objectives and parameter plumbing."""
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -399,3 +400,22 @@ def test_progress_line_says_a_rejected_trial_point_has_no_gradient_rather_than_n
     assert "dloss/dphi=+6.128e-02" in format_record(rec)
     rec.update(theta={"cohesion": 2.0}, grad={"cohesion": float("nan")})
     assert "dloss/dcohesion=(not computed" in format_record(rec)
+
+
+def test_summary_history_is_strict_json_with_rejected_points_as_null():
+    """summary.json's history writes a rejected trial point's gradients (nan, never computed)
+    as null, so a strict parser reads the file; computed gradients and the rest are kept."""
+    from diffgns.inverse.job import history_for_json
+
+    nan = float("nan")
+    hist = [dict(iteration=0, theta={"friction_angle": 45.0}, loss=0.66,
+                 grad={"friction_angle": 0.061}, grad_u={"friction_angle": 1.2}, aux={"a": 1.0}),
+            dict(iteration=1, theta={"friction_angle": 13.5}, loss=0.45,
+                 grad={"friction_angle": nan}, grad_u={"friction_angle": nan}, aux={})]
+    out = history_for_json(hist)
+    text = json.dumps(out, allow_nan=False)  # raises on any NaN left
+    back = json.loads(text)
+    assert back[1]["grad"] == {"friction_angle": None} and back[1]["grad_u"] == {
+        "friction_angle": None}
+    assert back[0]["grad"] == {"friction_angle": 0.061} and "aux" not in back[0]
+    assert back[1]["loss"] == 0.45 and math.isnan(hist[1]["grad"]["friction_angle"])

@@ -135,10 +135,21 @@ def make_objective(name: str, obs: SceneObservation, observed=None, frame: int =
                                   center=center)
 
 
-def _gradient(g: float) -> str:
+def gradient_text(g: float) -> str:
     """A gradient entry of a progress line; nan marks a trial point rejected on its loss
-    alone (:func:`diffgns.inverse.solve`: its gradient was never computed), not a NaN."""
+    alone (:func:`diffgns.inverse.solve.record`: its gradient was never computed), not a NaN."""
     return "(not computed: point rejected on its loss)" if math.isnan(g) else f"{g:+.3e}"
+
+
+def history_for_json(history: list[dict]) -> list[dict]:
+    """The iteration records for ``summary.json``: without ``aux``, and with the gradients of
+    a trial point rejected on its loss (nan: never computed) as null, so the file is standard
+    JSON (json.dumps would write ``NaN``, which strict parsers refuse)."""
+    def grads(g: dict) -> dict:
+        return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in g.items()}
+
+    return [{k: grads(v) if k in ("grad", "grad_u") else v for k, v in h.items() if k != "aux"}
+            for h in history]
 
 
 def format_record(rec: dict) -> str:
@@ -147,9 +158,9 @@ def format_record(rec: dict) -> str:
     for k, v in rec["theta"].items():
         if k == "friction_angle":
             parts.append(f"phi={v:7.3f} deg  loss={rec['loss']:.3e}  "
-                         f"dloss/dphi={_gradient(rec['grad'][k])}")
+                         f"dloss/dphi={gradient_text(rec['grad'][k])}")
         else:
-            parts.append(f"{k}={v:.4g}  dloss/d{k}={_gradient(rec['grad'][k])}")
+            parts.append(f"{k}={v:.4g}  dloss/d{k}={gradient_text(rec['grad'][k])}")
     if "friction_angle" not in rec["theta"]:
         parts.append(f"loss={rec['loss']:.3e}")
     return (f"iter {rec['iteration']:2d}  " + "  ".join(parts)
@@ -230,7 +241,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         warnings=list(obs.warnings), **(extra or {}))
     if "friction_angle" in summary["error"]:
         summary["error_deg"] = summary["error"]["friction_angle"]
-    summary["history"] = [{k: v for k, v in h.items() if k != "aux"} for h in res.history]
+    summary["history"] = history_for_json(res.history)
     from diffgns.io import figures
 
     figures.plot_convergence(res, out / "convergence.png", truth=truth or None)
