@@ -3,6 +3,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import jax
@@ -469,6 +470,11 @@ def test_window_activity_is_zero_in_free_flight_and_measures_a_kick_at_its_targe
         want = np.array([k * np.sqrt(15) / 16 if s in active else 0.0
                          for s in range(T - L + 1)])
         np.testing.assert_allclose(act, want, atol=1e-3 * k)  # float32 positions
+    # only kinematic nodes: no activity, and no warning from an empty mean
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        still = window_activity(t.positions, np.full(18, 3), C, C + 2)
+    assert still.shape == (T - C - 1,) and not still.any()
 
 
 def test_active_windows_draw_starts_in_proportion_to_one_plus_weight_times_activity():

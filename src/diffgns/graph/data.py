@@ -147,8 +147,10 @@ def window_activity(positions: np.ndarray, particle_type: np.ndarray, history: i
     """
     x = np.asarray(positions, np.float64)[:, np.asarray(particle_type) != KINEMATIC]
     a = x[2:] - 2.0 * x[1:-1] + x[:-2]  # (T - 2, N, d): acceleration of frames 1 .. T - 2
-    dev = a - a.mean(1, keepdims=True)
-    act = np.sqrt((dev ** 2).sum(-1).mean(1)) if x.shape[1] else np.zeros(len(a))
+    if a.shape[1] == 0:  # only kinematic nodes: nothing moves of itself
+        act = np.zeros(len(a))
+    else:
+        act = np.sqrt(((a - a.mean(1, keepdims=True)) ** 2).sum(-1).mean(1))
     n_starts = len(x) - length + 1
     targets = length - history - 1  # target frames per window: 1 + unroll
     # frame f's activity is act[f - 1]; window s's targets are frames s + C .. s + C + unroll
