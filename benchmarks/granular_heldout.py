@@ -9,9 +9,11 @@ Rolls the model out from the first ``history + 1`` frames of every trajectory of
 runout from the back of the initial mass in the flow's direction (``flow_runout``), final
 position error relative to the mean displacement (per node, and under the best one-to-one
 matching of the final nodes: ``matched``, correspondence-free, reported beside), inside the
-domain, finite, final kinetic energy. :func:`~diffgns.graph.evaluate.per_family` gives
-the table per family (from the dataset's ``family`` attributes) against the targets of
-issue 21 (5% and 5% per case).
+domain, finite, final kinetic energy, and the positions the rollout clamped into the box
+(``clamped``: count, in how many cases; a clamped position left the domain, so the family
+then misses the targets even when ``outside`` is 0).
+:func:`~diffgns.graph.evaluate.per_family` gives the table per family (from the dataset's
+``family`` attributes) against the targets of issue 21 (5% and 5% per case).
 Accuracy alone by default: the protocol records the load but never refuses the run. With
 ``--timed ROUNDS`` each case's cost per simulated second is also measured against the MPM
 at its stable dt on the case's own scene (redrawn from the stored family and scene seed and
@@ -57,7 +59,7 @@ def main(argv=None) -> None:
     for row, fam in zip(res["rows"], families):
         row["family"] = fam
     if args.timed:
-        for row, ref, sample in zip(res["rows"], trajs, _samples(args.data)):
+        for row, ref, sample in zip(res["rows"], trajs, samples(args.data)):
             row.update(speed_of_case(gns, params, ref, sample, args.timed))
             run.print(f"case {row['case']:>2} {row['family']:<10}: GNS "
                       f"{row['gns_s_per_sim_s']:.3f}, MPM {row['mpm_stable_s_per_sim_s']:.3f} "
@@ -65,7 +67,7 @@ def main(argv=None) -> None:
                       f"GNS {row['speedup_vs_mpm_stable']:.1f}x cheaper")
     table = per_family(res["rows"], families)
     run.print(f"{'family':<12} {'cases':>5} {'runout mean/max':>16} {'pos err mean/max':>17} "
-              f"{'matched mean/max':>17} {'outside':>7} {'NaN':>4} {'met':>4}")
+              f"{'matched mean/max':>17} {'outside':>7} {'clamped':>12} {'NaN':>4} {'met':>4}")
     m = "final_matched_error_rel_displacement"
     for fam, t in table.items():
         run.print(f"{fam:<12} {t['cases']:>5} "
@@ -73,7 +75,9 @@ def main(argv=None) -> None:
                   f"{t['final_position_error_rel_displacement_mean']:>8.3f}/"
                   f"{t['final_position_error_rel_displacement_max']:<8.3f} "
                   f"{t.get(m + '_mean', np.nan):>8.3f}/{t.get(m + '_max', np.nan):<8.3f} "
-                  f"{t['outside_domain']:>7} {t['not_finite']:>4} {str(t['met']):>4}")
+                  f"{t['outside_domain']:>7} {t['clamped_positions']:>5} in "
+                  f"{t['clamped_cases']:>3} "
+                  f"{t['not_finite']:>4} {str(t['met']):>4}")
     run.print(f"targets per case: {TARGETS}")
     if args.timed:
         for fam in dict.fromkeys(families):
@@ -87,7 +91,7 @@ def main(argv=None) -> None:
     run.print(f"wrote {path}")
 
 
-def _samples(path) -> list[tuple]:
+def samples(path) -> list[tuple]:
     """(family, scene seed, stored particle count, ranges) of every trajectory of ``path``."""
     import h5py
 
@@ -99,11 +103,9 @@ def _samples(path) -> list[tuple]:
                 for k, fam in read_families(path).items()]
 
 
-def speed_of_case(gns, params, ref, sample: tuple, rounds: int) -> dict:
-    """``gns_accuracy_speed.stable_speed`` on the scene ``sample = (family, scene seed,
-    particles, ranges)``, redrawn and checked against the stored particle count."""
-    from gns_accuracy_speed import stable_speed
-
+def scene_of(sample: tuple):
+    """The scene of ``sample = (family, scene seed, particles, ranges)`` (:func:`samples`),
+    redrawn and checked against the stored particle count."""
     from diffgns.scene.families import random_scene
 
     family, seed, n_particles, ranges = sample
@@ -111,7 +113,14 @@ def speed_of_case(gns, params, ref, sample: tuple, rounds: int) -> dict:
     if scene.n_particles != n_particles:
         raise SystemExit(f"{family}:{seed} redraws {scene.n_particles} particles, the data has "
                          f"{n_particles}: the dataset was drawn with other ranges")
-    return stable_speed(gns, params, ref, scene, rounds)
+    return scene
+
+
+def speed_of_case(gns, params, ref, sample: tuple, rounds: int) -> dict:
+    """``gns_accuracy_speed.stable_speed`` on the scene of ``sample`` (:func:`scene_of`)."""
+    from gns_accuracy_speed import stable_speed
+
+    return stable_speed(gns, params, ref, scene_of(sample), rounds)
 
 
 if __name__ == "__main__":

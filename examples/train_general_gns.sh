@@ -47,3 +47,11 @@ if [ ! -d "$RUNS/soup4" ] && [ -d checkpoints/general_fs/soup4 ]; then
 fi
 if [ -d "$RUNS/soup4" ]; then echo "soup4 done ($RUNS/soup4)"; else
   run diffgns average "$RUNS"/{aw1,aw1s72,aw4,r1cs72}/model --out "$RUNS/soup4"; fi
+# stage 3: two more soup members, one per option, at new seeds; soup6 averages all six
+SEED=73 NET="$NET --active-windows 1" stage aw1s73 "${FINE[@]}"
+SEED=74 stage r1cs74 "${FINE[@]}"
+if [ ! -d "$RUNS/soup6" ] && [ -d checkpoints/general_fs/soup6 ]; then
+  run cp -r checkpoints/general_fs/soup6 "$RUNS/soup6"
+fi
+if [ -d "$RUNS/soup6" ]; then echo "soup6 done ($RUNS/soup6)"; else
+  run diffgns average "$RUNS"/{aw1,aw1s72,aw4,r1cs72,aw1s73,r1cs74}/model --out "$RUNS/soup6"; fi

@@ -13,6 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import granular_heldout as gh  # noqa: E402
 import granular_truth_spread as gts  # noqa: E402
+import hybrid_families as hf  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
 import meshnet_accuracy_speed as mas  # noqa: E402
 
@@ -32,6 +33,36 @@ def test_schedule_names_give_the_schedules_of_the_published_table():
     assert [hp.parse_schedule(x) for x in hp.FULL] == before
     assert hp.parse_schedule("K8M2").label == "hybrid K=8 M=2 (carry)"
     assert hp.parse_schedule("GNS:rigid").label == "GNS rigid"
+
+
+@pytest.mark.parametrize("name", ["GNS", "K2M5", "K4M4:reset", "K2A0.02", "K4M4:rigid",
+                                  "GNS:rigid", "K4M4:reconstruct:rigid"])
+def test_hybrid_families_names_a_schedule_as_hybrid_pareto_parses_it(name):
+    assert hf.parse_label(hp.parse_schedule(name)) == name
+
+
+def test_hybrid_families_lists_exactly_the_cases_where_the_hybrid_is_worse():
+    pos = hf.POS
+    rows = [dict(case=c, family=f, schedule=s, **{pos: e}) for c, f, s, e in (
+        (0, "squares", "GNS", 0.20), (0, "squares", "K2M5", 0.10),
+        (1, "columns", "GNS", 0.10), (1, "columns", "K2M5", 0.12),
+        (2, "obstacles", "GNS", 0.30), (2, "obstacles", "K2M5", 0.30))]
+    worse = hf.worse_than_gns(rows, "K2M5")
+    assert worse == [dict(case=1, family="columns", error=0.12, gns_error=0.10)]
+    assert hf.worse_than_gns(rows, "K2M5", tol=0.05) == []
+
+
+def test_hybrid_families_splits_clamps_by_the_simulator_that_made_the_frame():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    # frames 0..4; frame t is made by step t - 1 of mode[t - 1] (0 GNS, 1 MPM)
+    res = SimpleNamespace(mode=np.array([1, 0, 0, 1]), clamped=np.array([0, 5, 2, 1, 7]),
+                          clamp_shift=np.array([0.0, 1e-8, 2e-3, 5e-4, 3e-8]))
+    out = hf.clamps_by_mode(res)
+    assert out == dict(clamped_positions_mpm_frames=12, max_clamp_shift_mpm_frames_m=3e-8,
+                       clamped_positions_gns_frames=3, max_clamp_shift_gns_frames_m=2e-3)
 
 
 @pytest.mark.parametrize("bad", ["K4", "M4K4", "K4M4:fast", "hybrid"])

@@ -25,16 +25,21 @@ def test_per_family_summary_flags_any_case_over_a_target():
         return dict(flow_runout_rel_error=runout, final_position_error_rel_displacement=pos,
                     inside_domain=inside, finite=finite, final_kinetic_energy_per_kg=1e-6)
 
-    rows = [row(0.01, 0.02), row(0.04, 0.03), row(0.02, 0.06), row(0.01, 0.01, inside=False)]
-    fams = ["squares", "squares", "columns", "obstacles"]
+    rows = [row(0.01, 0.02), row(0.04, 0.03), row(0.02, 0.06), row(0.01, 0.01, inside=False),
+            dict(row(0.01, 0.01), clamped_positions=3), dict(row(0.01, 0.01), clamped_positions=0)]
+    fams = ["squares", "squares", "columns", "obstacles", "collision", "collision"]
     t = per_family(rows, fams)
     assert t["squares"]["met"] and t["squares"]["cases"] == 2
+    assert t["squares"]["clamped_positions"] == 0 and t["squares"]["clamped_cases"] == 0
     assert t["squares"]["flow_runout_rel_error_max"] == pytest.approx(0.04)
     assert not t["columns"]["met"]  # position error 6% > 5%
     assert not t["obstacles"]["met"] and t["obstacles"]["outside_domain"] == 1
-    assert t["all"]["cases"] == 4 and not t["all"]["met"]
-    with pytest.raises(ValueError, match="4 rows for 3"):
-        per_family(rows, fams[:3])
+    # inside the domain and within the targets, but only because 3 positions were clamped
+    assert not t["collision"]["met"]
+    assert t["collision"]["clamped_positions"] == 3 and t["collision"]["clamped_cases"] == 1
+    assert t["all"]["cases"] == 6 and not t["all"]["met"] and t["all"]["clamped_cases"] == 1
+    with pytest.raises(ValueError, match="6 rows for 5"):
+        per_family(rows, fams[:5])
 
 
 def test_matched_position_error_ignores_labels_and_measures_a_shift():

@@ -150,8 +150,11 @@ def per_family(rows: list[dict], families: list[str], targets: dict | None = Non
 
     For each family: case count, mean and max of every target metric (default
     :data:`TARGETS`) and of each :data:`REPORTED` metric every row carries, how many cases are
-    outside the domain or not finite, the largest final kinetic energy (J/kg), and
-    ``met``: every case within every target, inside, finite.
+    outside the domain or not finite, how many positions the simulator clamped into the
+    domain (``clamped_positions``, summed) and in how many cases (``clamped_cases``): a
+    clamped position is one that left the domain, which the clamp hid from
+    ``inside_domain``; the largest final kinetic energy (J/kg), and ``met``: every case
+    within every target, inside, finite and never clamped.
     A key ``"all"`` summarises every row. ValueError when the lengths differ.
     """
     targets = TARGETS if targets is None else targets
@@ -172,8 +175,11 @@ def per_family(rows: list[dict], families: list[str], targets: dict | None = Non
                 entry[f"{k}_mean"], entry[f"{k}_max"] = float(vals.mean()), float(vals.max())
         entry["outside_domain"] = sum(not r.get("inside_domain", True) for r in mine)
         entry["not_finite"] = sum(not r.get("finite", True) for r in mine)
+        entry["clamped_positions"] = int(sum(r.get("clamped_positions", 0) for r in mine))
+        entry["clamped_cases"] = sum(r.get("clamped_positions", 0) > 0 for r in mine)
         entry["final_kinetic_energy_per_kg_max"] = float(max(
             r.get("final_kinetic_energy_per_kg", 0.0) for r in mine))
-        entry["met"] = ok and entry["outside_domain"] == 0 and entry["not_finite"] == 0
+        entry["met"] = (ok and entry["outside_domain"] == 0 and entry["not_finite"] == 0
+                        and entry["clamped_positions"] == 0)
         out[fam] = entry
     return out
