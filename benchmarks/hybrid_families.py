@@ -72,7 +72,7 @@ def main(argv=None) -> None:
     for c in cases:
         scene = scene_of(every[c])
         for sched in scheds:
-            row = dict(case=c, family=families[c], schedule=parse_label(sched),
+            row = dict(case=c, family=families[c], schedule=short_name(sched),
                        **run_case(scene, gns, params, info, sched, refs[c]))
             rows.append(row)
             run.print(f"case {c:>2} {families[c]:<10} {row['schedule']:<6} position error "
@@ -84,19 +84,19 @@ def main(argv=None) -> None:
                       f"{1e3 * row['max_clamp_shift_gns_frames_m']:.3g} mm)", tag=False)
     tables, worse = {}, {}
     for sched in scheds:
-        name = parse_label(sched)
+        name = short_name(sched)
         mine = [r for r in rows if r["schedule"] == name]
         tables[name] = per_family(mine, [r["family"] for r in mine])
         if sched.mpm_frames:
             worse[name] = worse_than_gns(rows, name)
     print_tables(run, tables, worse, rows)
     path = run.finish(args.out, dict(model=str(args.model), data=str(args.data),
-                                     schedules=[parse_label(s) for s in scheds], rows=rows,
+                                     schedules=[short_name(s) for s in scheds], rows=rows,
                                      tables=tables, worse_than_gns=worse))
     run.print(f"wrote {path}")
 
 
-def parse_label(sched) -> str:
+def short_name(sched) -> str:
     """The schedule's short name (``GNS``, ``K2M5``, ``K2M5:reset``, ...)."""
     if sched.mpm_frames == 0:
         name = "GNS"
