@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 
+import jax
 import numpy as np
 import protocol
 from granular_heldout import samples, scene_of
@@ -70,6 +71,10 @@ def main(argv=None) -> None:
     every = samples(args.data)
     rows = []
     for c in cases:
+        # every scene has its own particle count, so its own compiled programs: free the last
+        # scene's, or XLA's JIT mappings exhaust vm.max_map_count (65,530 by default) after
+        # ~20 scenes of 4 schedules ("LLVM ERROR: Unable to allocate section memory")
+        jax.clear_caches()
         scene = scene_of(every[c])
         for sched in scheds:
             row = dict(case=c, family=families[c], schedule=short_name(sched),

@@ -348,3 +348,62 @@ def test_hybrid_reallocation_checks_node_compaction_like_the_gns(model):
         hyb.reallocate(state, frames(x0 + np.float32([0.01, 0.0])), 3, 0)
     with pytest.warns(CompactionWarning, match="by frame 2"):
         hyb.reallocate(state, frames(centre + (x0 - centre) / 3), 3, 0)
+
+
+def test_segment_entry_stops_a_path_at_the_face_of_a_box():
+    """Largest t in [0, 1] keeping base + t d out of every box: analytic cases."""
+    from diffgns.hybrid.handoff import segment_entry
+
+    box = jnp.array([[0.4, 0.0, 0.6, 1.0]])
+    base = jnp.array([[0.0, 0.0, 0.5, 0.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.0, 0.0, 0.5]])
+    d = jnp.array([[1.0, 0.3, 1.0, 1.0, 1.0, 1.0], [0.0, 0.0, 0.0, 1.0, 0.1, 0.0]])
+    t = segment_entry(base, d, box)
+    # straight in at x = 0.4; stops short of it; starts inside; the diagonal (t, t) enters
+    # through the left face at t = 0.4
+    np.testing.assert_allclose(t[:4], [0.4, 1.0, 0.0, 0.4], atol=1e-7)
+    two = jnp.array([[0.4, 0.0, 0.6, 1.0], [0.5, 0.2, 0.7, 0.9]])
+    # diagonal from the origin: the second box is entered at t = max(0.5, 0.2) = 0.5 but the
+    # first already at x = 0.4 (y = 0.4 is inside [0, 1])
+    np.testing.assert_allclose(segment_entry(base[:, 3:4], d[:, 3:4], two), [0.4], atol=1e-7)
+    beside = jnp.array([[0.5, 0.2, 0.7, 0.9]])  # y only reaches 0.1: passes under it
+    np.testing.assert_allclose(segment_entry(base[:, 4:5], d[:, 4:5], beside), [1.0])
+    # exempt from the box it is inside; no box at all; a box parked far away
+    exempt = jnp.array([[False, False, True, False, False, False]])
+    assert float(segment_entry(base, d, box, exempt)[2]) == 1.0
+    assert np.all(np.asarray(segment_entry(base, d, jnp.zeros((0, 4)))) == 1.0)
+    parked = jnp.array([[1e3, 1e3, 1e3 + 1, 1e3 + 1]])
+    assert np.all(np.asarray(segment_entry(base, d, parked)) == 1.0)
+
+
+def test_keep_inside_keeps_particles_out_of_an_obstacle():
+    """A cluster beside an obstacle whose affine term (and, for one cluster, its rigid
+    offsets) would carry particles into it: no particle ends inside the obstacle grown by the
+    margin, each cluster's mean stays its node, a cluster far from it is mapped unchanged,
+    and a particle that was already inside is not pushed out by the map."""
+    from diffgns.hybrid.handoff import keep_inside
+
+    lo, hi, margin = jnp.array([0.0, 0.0]), jnp.array([1.0, 0.5]), 0.005
+    obstacle = jnp.array([[0.5, 0.0, 0.6, 0.1]])
+    # cluster 0 left of the obstacle (node x = 0.47), stretched towards it by the affine term;
+    # cluster 1 far away; cluster 2 with its node 1 cm from the face and rigid offsets of 2 cm
+    nodes = jnp.array([[0.47, 0.05], [0.2, 0.3], [0.485, 0.05]]).T
+    cluster = jnp.array([0, 0, 1, 1, 2, 2], jnp.int32)
+    offset = jnp.array([[-0.01, 0.01, -0.01, 0.01, -0.02, 0.02], [0.0] * 6])
+    step = jnp.array([[-0.03, 0.03, -0.02, 0.02, 0.0, 0.0], [0.0] * 6])
+    x_node = nodes[:, cluster]
+    x_old = x_node + 0.25 * offset  # where the particles were: all outside the obstacle
+    x = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin, obstacle)
+    grown_x0 = 0.5 - margin
+    assert float(x[0, 1]) <= grown_x0 + 1e-6  # stretched only up to the grown face
+    assert float(x[0, 5]) <= grown_x0 + 1e-6  # contracted towards its node
+    np.testing.assert_allclose(x[:, 2:4], x_node[:, 2:4] + offset[:, 2:4] + step[:, 2:4],
+                               atol=1e-7)  # far from the obstacle: unchanged
+    for k in range(3):
+        np.testing.assert_allclose(x[:, cluster == k].mean(axis=1), nodes[:, k], atol=1e-6)
+    # without the obstacle both clusters would have entered it
+    free = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin)
+    assert float(free[0, 1]) > 0.5 and float(free[0, 5]) > 0.5
+    # a particle already inside the obstacle is exempt: cluster 0 maps as without it
+    inside_old = x_old.at[:, 1].set(jnp.array([0.55, 0.05]))
+    y = keep_inside(x_node, offset, step, cluster, 3, lo, hi, inside_old, margin, obstacle)
+    np.testing.assert_allclose(y[:, :2], free[:, :2], atol=1e-7)

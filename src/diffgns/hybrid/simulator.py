@@ -221,6 +221,10 @@ class Hybrid:
         self.frame_dt = float(mpm.scene.frame_dt) * self.stride
         self.lo = jnp.asarray(mpm.lo, mpm.dtype)
         self.hi = jnp.asarray(mpm.hi, mpm.dtype)
+        # the particle map keeps particles out of the scene's box obstacles (K, 4) m
+        self.obstacles = jnp.asarray(
+            np.asarray([[o.x0, o.y0, o.x1, o.y1] for o in mpm.scene.obstacles],
+                       float).reshape(-1, 4), mpm.dtype)
         # the particle map keeps particles half a particle spacing from the walls (m)
         self.margin = 0.5 * min(mpm.scene.dx / np.sqrt(b.particles_per_cell)
                                 for b in mpm.scene.bodies)
@@ -331,7 +335,7 @@ class Hybrid:
         grad_u = lsq_gradient(disp, x, snd, rcv, msk) if needs_grad_u else jnp.zeros_like(grad_v)
         mpm_state, map_clamp = particles_from_nodes(
             s.mpm, self.cluster, x, disp, vel, grad_v, grad_u, sched.handoff, self.lo,
-            self.hi, sched.particle_map, self.margin)
+            self.hi, sched.particle_map, self.margin, self.obstacles)
         if sched.handoff == "reconstruct":  # plastic return mapping of the new F
             mpm_state = mpm_state.replace(F=self.mpm.stress(params.mpm, mpm_state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the
