@@ -175,20 +175,15 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     def per_cluster(t):  # (d, N) -> (d, M): the smallest over each cluster, axis by axis
         return jax.vmap(lambda r: jax.ops.segment_min(r, cluster, num_segments=n_nodes))(t)
 
-    if obstacles is None or obstacles.shape[0] == 0:
-        def clear(base, d):
-            return largest(base, d)
-    else:
-        grown = jax.lax.stop_gradient(obstacles + jnp.asarray([-1.0, -1.0, 1.0, 1.0],
-                                                              obstacles.dtype) * margin)
-        exempt = None
-        if x_old is not None:
-            exempt = jnp.all((x_old[None] > grown[:, :2, None])
-                             & (x_old[None] < grown[:, 2:, None]), axis=1)
-        exempt = jax.lax.stop_gradient(exempt) if exempt is not None else None
+    if obstacles is None:
+        obstacles = jnp.zeros((0, 4), x_node.dtype)
+    grown = jax.lax.stop_gradient(obstacles + margin * jnp.asarray([-1.0, -1.0, 1.0, 1.0],
+                                                                   obstacles.dtype))
+    exempt = None if x_old is None else jnp.all(  # (K, N): already inside a grown obstacle
+        (x_old[None] > grown[:, :2, None]) & (x_old[None] < grown[:, 2:, None]), axis=1)
 
-        def clear(base, d):
-            return jnp.minimum(largest(base, d), segment_entry(base, d, grown, exempt)[None])
+    def clear(base, d):  # box limits axis by axis, then the obstacles' one factor
+        return jnp.minimum(largest(base, d), segment_entry(base, d, grown, exempt)[None])
 
     rigid = x_node + offset
     s = per_cluster(clear(rigid, step))

@@ -35,6 +35,7 @@ import numpy as np
 
 from diffgns.clamp import ClampCount, clamp_summary
 from diffgns.graph.data import coarse_grain_map
+from diffgns.graph.geometry import obstacle_array
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import did_overflow, edges
 from diffgns.hybrid.handoff import (
@@ -222,9 +223,8 @@ class Hybrid:
         self.lo = jnp.asarray(mpm.lo, mpm.dtype)
         self.hi = jnp.asarray(mpm.hi, mpm.dtype)
         # the particle map keeps particles out of the scene's box obstacles (K, 4) m
-        self.obstacles = jnp.asarray(
-            np.asarray([[o.x0, o.y0, o.x1, o.y1] for o in mpm.scene.obstacles],
-                       float).reshape(-1, 4), mpm.dtype)
+        self.obstacles = jnp.asarray(obstacle_array(
+            [tuple(o.lower) + tuple(o.upper) for o in mpm.scene.obstacles]), mpm.dtype)
         # the particle map keeps particles half a particle spacing from the walls (m)
         self.margin = 0.5 * min(mpm.scene.dx / np.sqrt(b.particles_per_cell)
                                 for b in mpm.scene.bodies)
