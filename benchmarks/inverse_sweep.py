@@ -101,6 +101,9 @@ def main(argv=None) -> None:
     ap.add_argument("--scan", type=float, nargs=3, default=None, metavar=("LO", "HI", "N"),
                     help="start each inversion from the lowest loss of N friction angles "
                          "from LO to HI deg (forward runs) instead of --start-phi alone")
+    ap.add_argument("--starts", type=int, default=1,
+                    help="with --scan: refine this many of the lowest scan points, keep the "
+                         "lowest end")
     ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -139,7 +142,10 @@ def main(argv=None) -> None:
             ap.error(f"--scenes {spec!r}: use FAMILY:SEED, e.g. squares:5")
         cases.append((spec, dict(scene=spec), lambda f=family, n=int(seed): (
             SceneObservation.for_model(random_scene(f, n), info, args.frames, model=model))))
+    import jax
+
     for label, fields, build in cases:
+        jax.clear_caches()  # free the last scene's compiled programs (memory mappings)
         col = None
         for phi in args.phis:
             todo = [s for s in args.simulators
@@ -158,7 +164,8 @@ def main(argv=None) -> None:
                 print(f"--- {sim_kind}: {label}, phi = {phi:g} (start {start:g}); "
                       f"observation {t_obs:.0f} s", flush=True)
                 row = dict(simulator=sim_kind, **fields, objective=args.objective,
-                           gradient=args.gradient, scan=args.scan, true_phi=phi,
+                           gradient=args.gradient, scan=args.scan, starts=args.starts,
+                           true_phi=phi,
                            start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
                            observation_s=t_obs)
@@ -171,12 +178,14 @@ def main(argv=None) -> None:
                     s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
                               max_iter=args.max_iter, step_tol=args.step_tol,
                               gradient=args.gradient, observed=observed, truth=truth,
-                              label=sim_kind, t_start=t1, scan=scan)
+                              label=sim_kind, t_start=t1, scan=scan,
+                              starts=args.starts)
                     row.update(recovered_phi=s["recovered"]["friction_angle"],
                                error_deg=s["error_deg"], iterations=s["iterations"],
                                converged=s["converged"], stop_reason=s["stop_reason"],
                                seconds=s["wall_time_s"], compile_s=s["compile_s"],
-                               warnings=s["warnings"])
+                               warnings=s["warnings"], scan_losses=s["scan"],
+                               starts=s["starts"])
                 except Exception as e:  # noqa: BLE001 - a failed case is a row of the table
                     row["failed"] = f"{type(e).__name__}: {e}"[:200]
                     row["seconds"] = time.perf_counter() - t1

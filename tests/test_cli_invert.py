@@ -65,16 +65,21 @@ def test_invert_recovers_the_friction_angle_of_a_sliding_mass_with_the_mpm(
     s = json.loads((tmp_path / "inv_runout" / "summary.json").read_text())
     assert rc == 0 and s["objective"] == "runout-max" and s["target"] is None
     assert s["recovered"]["friction_angle"] == pytest.approx(30.0, abs=0.02)
-    # started from the best of a scan (forward runs at 20, 35, 50 deg)
+    # refined from the best two of a scan (forward runs at 20, 35, 50 deg)
     rc = main(["invert", str(scene), "--fit", "friction_angle=40:0:90", "--observed-runout",
                str(runout), "--frames", "40", "--dtype", "float64", "--step-tol", "0.001",
-               "--scan", "friction_angle=20:50:3", "--out", str(tmp_path / "inv_scan")])
+               "--scan", "friction_angle=20:50:3", "--starts", "2",
+               "--out", str(tmp_path / "inv_scan")])
     s = json.loads((tmp_path / "inv_scan" / "summary.json").read_text())
     assert rc == 0 and [p["theta"]["friction_angle"] for p in s["scan"]] == \
         pytest.approx([20.0, 35.0, 50.0])
     best = min(s["scan"], key=lambda p: p["loss"])["theta"]["friction_angle"]
     assert s["history"][0]["theta"]["friction_angle"] == pytest.approx(best)
     assert s["recovered"]["friction_angle"] == pytest.approx(30.0, abs=0.02)
+    ranked = sorted(s["scan"], key=lambda p: p["loss"])[:2]
+    assert [r["start"] for r in s["starts"]] == [p["theta"] for p in ranked]
+    assert all(r["theta"]["friction_angle"] == pytest.approx(30.0, abs=0.02)
+               for r in s["starts"])
 
 
 def test_invert_with_a_gns_refuses_a_scene_its_model_does_not_support(tmp_path, capsys):
@@ -101,6 +106,9 @@ def test_invert_argument_errors_name_the_fix(tmp_path, capsys):
     assert main(base + ["--fit", "friction_angle=40:0:90", "--frames", "4", "--scan",
                         "friction_angle=20:50"]) == 2
     assert "--scan 'friction_angle=20:50': use name=lo:hi:n" in capsys.readouterr().err
+    assert main(base + ["--fit", "friction_angle=40:0:90", "--frames", "4", "--starts",
+                        "2"]) == 2
+    assert "> 1 only with a scan" in capsys.readouterr().err
     assert main(base + ["--fit", "obstacle_mu[3]=0.3:0:1", "--frames", "4"]) == 2
     assert "no obstacle '3'" in capsys.readouterr().err
     assert main(base + ["--fit", "E=1e6:1e5:1e7", "--frames", "4", "--simulator", "gns",

@@ -419,3 +419,57 @@ def test_summary_history_is_strict_json_with_rejected_points_as_null():
         "friction_angle": None}
     assert back[0]["grad"] == {"friction_angle": 0.061} and "aux" not in back[0]
     assert back[1]["loss"] == 0.45 and math.isnan(hist[1]["grad"]["friction_angle"])
+
+
+def test_starts_refine_the_lowest_scan_points_and_keep_the_lowest_end():
+    """A narrow global basin (32 deg, loss 0) between grid points and a broad local one (26
+    deg, loss 0.02): the lowest grid point (25) leads to 26; the second (30) to 32. With
+    ``starts=2`` both are refined with the programs compiled once, the run ending lower is
+    returned and both are summarised; starts > 1 without a scan is refused."""
+    traces = []
+
+    def loss(th):
+        traces.append(1)
+        phi = th["friction_angle"]
+        broad = 0.02 + 1e-4 * (phi - 26.0) ** 2
+        narrow = 0.025 * (1.0 - jnp.exp(-(((phi - 32.0) / 1.5) ** 2)))
+        return jnp.minimum(broad, narrow)
+
+    gn = inverse.make_optimizer("gauss-newton")
+    grid = [15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0]
+    kw = dict(max_iter=30, step_tol=0.01, gradient="auto", scan={"friction_angle": grid})
+    one = inverse.optimize(loss, {"friction_angle": 45.0}, gn, **kw)
+    assert abs(one.theta["friction_angle"] - 26.0) < 0.1 and one.starts[0]["loss"] > 0.019
+    traces.clear()
+    two = inverse.optimize(loss, {"friction_angle": 45.0}, gn, starts=2, **kw)
+    assert len(traces) == 2  # one forward and one gradient program for both starts
+    assert [s["start"]["friction_angle"] for s in two.starts] == pytest.approx([25.0, 30.0],
+                                                                             abs=1e-4)
+    assert abs(two.starts[0]["theta"]["friction_angle"] - 26.0) < 0.1
+    assert abs(two.theta["friction_angle"] - 32.0) < 0.05 and two.starts[1]["loss"] < 1e-4
+    assert two.history[0]["start"] == 1 and two.history[0]["theta"]["friction_angle"] == \
+        pytest.approx(30.0, abs=1e-4)
+    assert "start 1 of 2" in two.stop_reason
+    with pytest.raises(ValueError, match="only with a scan"):
+        inverse.optimize(loss, {"friction_angle": 45.0}, gn, starts=2)
+    with pytest.raises(ValueError, match="starts must be"):
+        inverse.optimize(loss, {"friction_angle": 45.0}, gn, starts=0, **kw)
+
+
+def test_check_mappings_warns_near_the_kernel_limit_and_reads_this_process():
+    """The warning names the remedy when a process holds more than the fraction of
+    vm.max_map_count; below it, or where the limit is unknown, nothing. The live reading
+    counts this process's mappings (a Python process with JAX holds hundreds)."""
+    import warnings
+
+    from diffgns.memory import check_mappings, mappings
+
+    with pytest.warns(ResourceWarning, match="jax.clear_caches"):
+        assert check_mappings(counts=(50_000, 65_530))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not check_mappings(counts=(49_000, 65_530))
+        assert not check_mappings(counts=(10, 0))
+        n, limit = mappings()
+        assert 100 < n < limit
+        assert not check_mappings()

@@ -1,11 +1,13 @@
 """Memory figures: process RSS and XLA's analysis of a compiled program (MB = 1e6 bytes).
 
 Used by the inverse loops (:mod:`diffgns.inverse.solve`, :mod:`diffgns.inverse.lsq`,
-:mod:`diffgns.inverse.gradients`) and the memory benchmarks.
+:mod:`diffgns.inverse.gradients`) and the memory benchmarks. :func:`check_mappings` warns
+before XLA's compiled code exhausts the kernel's memory-mapping limit.
 """
 from __future__ import annotations
 
 import resource
+import warnings
 from typing import Any
 
 from diffgns.timing import measure, no_sync
@@ -58,3 +60,38 @@ def compile_ahead(jitted: Any, *args: Any) -> tuple[Any, dict[str, Any]]:
     comp, exe = measure(lowered.compile, sync=no_sync)
     return exe, {"lower_s": low.wall_s, "compile_s": comp.wall_s,
                  "compile_cpu_s": low.cpu_s + comp.cpu_s, "memory": memory_stats(exe)}
+
+
+def mappings() -> tuple[int, int]:
+    """(memory mappings of this process, the kernel's ``vm.max_map_count``); (0, 0) where
+    /proc is unavailable."""
+    try:
+        with open("/proc/self/maps") as f:
+            n = sum(1 for _ in f)
+        with open("/proc/sys/vm/max_map_count") as f:
+            return n, int(f.read())
+    except (OSError, ValueError):  # pragma: no cover - non-Linux
+        return 0, 0
+
+
+def check_mappings(fraction: float = 0.75, counts: tuple[int, int] | None = None) -> bool:
+    """Warn (``ResourceWarning``) when this process holds more than ``fraction`` of the
+    kernel's memory mappings; True if it did.
+
+    XLA's CPU JIT maps every compiled program's code into its own sections, and the compiled
+    programs of a process stay cached: a loop over many scenes of different sizes in one
+    process (~85 hybrid runs, 2026-12-05) reached Linux's default limit of 65,530 and died
+    with "LLVM ERROR: Unable to allocate section memory", without a Python traceback. The
+    inverse jobs and the hybrid comparison call this once per run. ``counts``: (mappings,
+    limit) instead of reading them (tests).
+    """
+    n, limit = mappings() if counts is None else counts
+    if limit <= 0 or n <= fraction * limit:
+        return False
+    warnings.warn(
+        f"this process holds {n} of the kernel's {limit} memory mappings "
+        f"(vm.max_map_count), mostly XLA's compiled code; past the limit XLA aborts with "
+        f"'LLVM ERROR: Unable to allocate section memory'. Between scenes call "
+        f"jax.clear_caches() to free compiled programs, or raise vm.max_map_count.",
+        ResourceWarning, stacklevel=2)
+    return True

@@ -124,7 +124,7 @@ def run(args) -> int:
     solve(sim, objective, theta0, obs, args.out, transforms=transforms,
           optimizer=args.optimizer, lr=args.lr, max_iter=args.max_iter,
           step_tol=args.step_tol, gradient=args.gradient, observed=nodes, truth=truth,
-          label=args.simulator, t_start=t_start, scan=scan,
+          label=args.simulator, t_start=t_start, scan=scan, starts=args.starts,
           extra=dict(scene=str(args.scene), objective=name,
                      observation=what, model=str(args.model) if loaded else None,
                      history=history if args.simulator == "gns" else None))
@@ -213,6 +213,10 @@ def register(sub) -> None:
                    help="start from the lowest loss of N values of NAME from LO to HI "
                    "(forward runs; for a loss with several minima), e.g. "
                    "friction_angle=15:50:8")
+    p.add_argument("--starts", type=int, default=1,
+                   help="with --scan: run the local method from this many of the lowest "
+                   "scan points and keep the lowest end (a minimum's basin can be narrower "
+                   "than the grid; default 1)")
     p.add_argument("--truth", action="append", default=[], metavar="NAME=VALUE",
                    help="the true value when known (figures and summary error)")
     p.add_argument("--dtype", default=None, choices=["float32", "float64"],

@@ -25,6 +25,7 @@ from diffgns.graph.support import check_scene
 from diffgns.graph.support import node_factor as _node_factor
 from diffgns.hybrid.simulator import Hybrid, HybridParams, Schedule
 from diffgns.interface import rollout_jit
+from diffgns.memory import check_mappings
 from diffgns.scene.builders import column_collapse
 from diffgns.timing import measure, time_call
 
@@ -118,6 +119,7 @@ def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: in
     """(HybridResult, timing dict) of a hybrid (or GNS-only) run of ``n_frames`` frames;
     ``cells_across``: the resolution of ``scene`` when it is not the model's own (nodes then
     keep the trained spacing)."""
+    check_mappings()
     own = cells_across is None or cells_across == model_cells(info)
     hyb = make_hybrid(scene, gns, info, schedule, "exact" if own else "node-spacing")
     params = HybridParams(hyb.mpm.params(), network)

@@ -33,6 +33,7 @@ from diffgns.inverse.simulators import (
     hybrid_simulator,
     mpm_simulator,
 )
+from diffgns.memory import check_mappings
 from diffgns.metrics import runout
 from diffgns.scene.builders3d import cylinder_axis
 
@@ -186,7 +187,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
           lr: float | None = None, max_iter: int = 20, step_tol: float | dict = 0.01,
           gradient: str = "auto", observed=None, truth: dict | None = None,
           label: str = "", fd_check: bool = False, extra: dict | None = None,
-          scan: dict | None = None,
+          scan: dict | None = None, starts: int = 1,
           t_start: float | None = None) -> dict:
     """Fit ``theta0`` with ``optimizer`` on ``objective(sim(theta))``; print, write, return.
 
@@ -198,7 +199,8 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
             0.1 otherwise) acts on the transformed parameters.
         step_tol: stop when every step is below this (physical units, float or by name).
         gradient: "auto", "ad" or "fd" (:func:`diffgns.inverse.optimize`).
-        scan: {name: values}: start from the lowest loss of a grid (``optimize``'s scan).
+        scan: {name: values}: start from the lowest loss of a grid (``optimize``'s scan);
+            ``starts``: refine that many of its lowest points, keep the lowest end.
         observed: observed nodes (n_obs, n', 2) for the deposit figure (None: a runout).
         truth: the true parameters when known (figures, ``error``).
         label: the simulator's name for messages; ``extra``: more summary entries.
@@ -208,6 +210,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         the summary written to ``out/summary.json``.
     """
     t_start = time.perf_counter() if t_start is None else t_start
+    check_mappings()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -219,7 +222,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
                                                    else 0.1))
     res = inverse.optimize(loss, theta0, opt, max_iter=max_iter, transforms=transforms,
                            step_tol=step_tol, gradient=gradient, has_aux=True,
-                           on_overflow=sim.reallocate, scan=scan,
+                           on_overflow=sim.reallocate, scan=scan, starts=starts,
                            callback=lambda rec: print(format_record(rec), flush=True))
     aux = res.aux
     assert isinstance(aux, dict)
@@ -232,6 +235,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         iterations=len(res.history) - 1, evaluations=len(res.history),
         converged=res.converged, stop_reason=res.stop_reason,
         scan=[dict(theta=t, loss=v) for t, v in res.scan], scan_s=res.scan_s,
+        starts=res.starts,
         compile_s=res.compile_s, optimisation_time_s=res.wall_time_s,
         time_per_iteration_s=float(np.median([h["time_s"] for h in res.history[1:]]
                                              or [res.history[0]["time_s"]])),

@@ -38,7 +38,9 @@ class InverseResult:
     ``compile_s`` is the ahead-of-time compile time of the gradient program and ``xla_memory``
     its XLA memory analysis (bytes: temp, argument, output); ``aux`` the auxiliary output of
     the last evaluation (e.g. the fitted positions) when the loss has one; ``scan`` the
-    (theta, loss) pairs of the ``scan`` option and ``scan_s`` its seconds.
+    (theta, loss) pairs of the ``scan`` option and ``scan_s`` its seconds; ``starts`` one
+    summary per local run (start, theta, loss, iterations, converged, stop_reason), the
+    chosen one's history being ``history``.
     """
 
     theta: dict
@@ -51,6 +53,7 @@ class InverseResult:
     aux: object = None
     scan: list = field(default_factory=list)
     scan_s: float = 0.0
+    starts: list = field(default_factory=list)
 
     def series(self, key: str, name: str | None = None) -> np.ndarray:
         """History of ``key`` ("loss", "time_s", ...) or of parameter ``name`` under "theta"."""
@@ -105,10 +108,11 @@ def _revisits(history: list, theta: dict, tol: dict) -> int | None:
     return None
 
 
-def _scan_start(loss_of, tf, u, scan: dict, dtype, result: InverseResult) -> dict:
-    """The point of ``scan`` (values by name, physical units) with the lowest
-    ``loss_of(u)``, in u; every point's (theta, loss) appended to ``result.scan``.
-    ValueError for a name not fitted or a value outside its transform's range."""
+def _scan_points(loss_of, tf, u, scan: dict, dtype, result: InverseResult) -> list:
+    """The points of ``scan`` (values by name, physical units) in u, from the lowest
+    ``loss_of(u)`` up (non-finite losses left out); every point's (theta, loss) appended to
+    ``result.scan``. ValueError for a name not fitted or a value outside its transform's
+    range; FloatingPointError when no loss is finite."""
     unknown = sorted(set(scan) - set(u))
     if unknown:
         raise ValueError(f"scan names {unknown} are not fitted parameters {sorted(u)}")
@@ -119,18 +123,18 @@ def _scan_start(loss_of, tf, u, scan: dict, dtype, result: InverseResult) -> dic
             raise ValueError(f"scan values of {k} must be a non-empty list inside "
                              f"({tf[k].lo}, {tf[k].hi}), got {list(scan[k])}")
     t0 = time.perf_counter()
-    best = None
+    ranked = []
     for values in itertools.product(*(scan[k] for k in names)):
         uu = dict(u, **{k: jnp.asarray(tf[k].inverse(float(v), k), dtype)
                         for k, v in zip(names, values)})
         loss = float(loss_of(uu))
         result.scan.append(({k: float(tf[k].forward(uu[k])) for k in uu}, loss))
-        if np.isfinite(loss) and (best is None or loss < best[0]):
-            best = (loss, uu)
-    if best is None:
+        if np.isfinite(loss):
+            ranked.append((loss, len(ranked), uu))
+    if not ranked:
         raise FloatingPointError(f"the loss is not finite at any scan point: {result.scan}")
     result.scan_s = time.perf_counter() - t0
-    return best[1]
+    return [uu for _, _, uu in sorted(ranked, key=lambda r: r[:2])]
 
 
 def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransformation,
@@ -139,7 +143,8 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
              smooth_rel_step: float = 1e-2, has_aux: bool = False,
              on_overflow: Callable | None = None,
              callback: Callable[[dict], None] | None = None,
-             scan: dict[str, Sequence[float]] | None = None) -> InverseResult:
+             scan: dict[str, Sequence[float]] | None = None,
+             starts: int = 1) -> InverseResult:
     """Minimise ``loss_fn(theta)`` with ``optimizer`` over transformed parameters.
 
     Args:
@@ -184,6 +189,14 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             For a loss with several minima (a deposit behind an obstacle: the flow over
             the obstacle or not), where a local method started far away ends in the
             nearest one. Recorded in ``result.scan`` as (theta, loss) pairs.
+        starts: with a scan, run the local method from each of the ``starts`` lowest scan
+            points (sharing the compiled programs) and return the run that ends at the
+            lowest loss (ties: the lower-ranked start). A minimum's basin can be narrower
+            than the grid's spacing, so its grid points may rank second or third: on the
+            MPM's deposit behind an obstacle (true 30 deg, grid 17.5-52.5 by 5 deg) the
+            truth's basin spans ~28.2-32.5 deg, 27.5 deg (0.0232) ranks just below 32.5 deg
+            (0.0233) and leads to a minimum at 25.4 deg; 32.5 deg leads to the truth.
+            ``result.starts`` summarises every run; history records carry ``start``.
     Returns:
         InverseResult; history records: iteration, theta, loss, grad (d loss / d theta,
         physical), grad_u (optimiser space), gradient ("ad" or "fd"; see "auto" for
@@ -198,35 +211,39 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                          f"and {smooth_rel_step}")
     if max_iter < 0:
         raise ValueError(f"max_iter must be >= 0, got {max_iter}")
+    if not (isinstance(starts, int) and starts >= 1) or (starts > 1 and not scan):
+        raise ValueError(f"starts must be an int >= 1, and > 1 only with a scan to rank "
+                         f"starts from; got starts={starts!r}, scan={scan!r}")
     tf, u, to_theta = setup(theta0, transforms)
     dtype = jnp.result_type(float)
     full = loss_fn if has_aux else (lambda th: (loss_fn(th), {}))
     t_start = time.perf_counter()
     result = InverseResult(theta=dict(theta0))
 
-    exe = fwd = None
     mode = "ad" if gradient == "auto" else gradient  # "auto" turns to "fd" at a rejection
     rel_step = fd_rel_step if gradient == "fd" else smooth_rel_step
     f = lambda uu: full(to_theta(uu))
+    programs: dict = {}  # "ad" (value and gradient) and "fwd" (loss, aux), compiled once
 
-    def compiled(fn):
-        ex, info = compile_ahead(jax.jit(fn), u)
-        result.compile_s += info["lower_s"] + info["compile_s"]
-        if mode == "ad" or not result.xla_memory:
-            result.xla_memory = info["memory"]
-        return ex
+    def program(kind: str, fresh: bool = False):
+        """The compiled program ``kind``, shared by every start (again after an overflow's
+        reallocation, ``fresh``)."""
+        if fresh:
+            programs.clear()
+        if kind not in programs:
+            fn = jax.value_and_grad(f, has_aux=True) if kind == "ad" else f
+            ex, info = compile_ahead(jax.jit(fn), u)
+            result.compile_s += info["lower_s"] + info["compile_s"]
+            if kind == "ad" or not result.xla_memory:
+                result.xla_memory = info["memory"]
+            programs[kind] = ex
+        return programs[kind]
 
-    def forward(fresh: bool = False):
-        """The forward program (loss, aux), compiled once (again after a reallocation)."""
-        nonlocal fwd
-        if fwd is None or fresh:
-            fwd = compiled(f)
-        return fwd
+    exe = None
 
     def build(fresh: bool = False):
         nonlocal exe
-        exe = compiled(jax.value_and_grad(f, has_aux=True)) if mode == "ad" else \
-            forward(fresh)
+        exe = program(mode, fresh)
 
     def differences(u, loss=None, aux=None):
         """Central differences of the loss (forward program) in physical units, chained
@@ -252,13 +269,13 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             return loss, aux, None  # rejected on its loss: no differences needed
         return differences(u, loss, aux)
 
-    best = None  # dict(loss, it, theta, aux, u, g_u, mode) of the lowest loss so far
     if scan:
-        u = _scan_start(lambda uu: forward()(uu)[0], tf, u, scan, dtype, result)
-    build()
-    state = optimizer.init(u)
+        origins = _scan_points(lambda uu: program("fwd")(uu)[0], tf, u, scan, dtype,
+                               result)[:starts]
+    else:
+        origins = [u]
     tol = step_tol if isinstance(step_tol, dict) else {k: step_tol for k in u}
-    radius = math.inf  # "auto": trust radius on each step in u, set by the first rejection
+    radius = math.inf
 
     def propose(g, st, uu, value):
         """The optimiser's step from ``uu``, each component clipped to ``radius``."""
@@ -267,77 +284,100 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
             upd = jax.tree.map(lambda d: jnp.clip(d, -radius, radius), upd)
         return optax.apply_updates(uu, upd), st
 
-    for it in range(max_iter + 1):
-        t0 = time.perf_counter()
-        loss, aux, g_u = evaluate_redo(evaluate, lambda: build(fresh=True), on_overflow,
-                                       to_theta, u, it)
-        rec = record(it, tf, u, loss, g_u, aux, t0, t_start)
-        rec["gradient"] = mode if g_u is not None else "none (rejected on its loss)"
-        loss, theta = rec["loss"], rec["theta"]
-        result.history.append(rec)
-        result.theta, result.aux = theta, aux
-        rose = best is not None and loss > best["loss"]
-        if not rose:
-            if best is not None and math.isfinite(radius):
-                radius *= 2.0  # an accepted step: widen the trust region again
-            best = dict(loss=loss, it=it, theta=theta, aux=aux, u=u, g_u=g_u, mode=mode)
-        if callback:
-            callback(rec)
-        if loss <= loss_tol:
-            result.converged, result.stop_reason = True, f"loss <= {loss_tol:g}"
-            break
-        if it == max_iter:
-            result.stop_reason = f"max_iter = {max_iter}"
-            break
-        new, back = u, None  # (a point rejected on its loss alone has no gradient)
-        if g_u is not None:
-            new, state = propose(g_u, state, u, loss)
-            back = _revisits(result.history[:-1],
-                             {k: float(tf[k].forward(new[k])) for k in u}, tol)
-        start = theta  # the point the step is taken from
-        if gradient == "auto" and (rose or back is not None):
-            # the step raised the loss (or leads back to a point no better): reject it. From
-            # the lowest-loss iterate, with differences over smooth_rel_step (the exact slope
-            # may be what misled: a loss rough below the step's scale) and a trust radius of
-            # half the rejected step in u, halved again while the step would land on an
-            # iterate already evaluated (its loss is known to be no lower)
-            if mode == "ad":
-                mode = "fd"
-                build()
-            if best["mode"] != "fd":  # differences at the best point (its loss is known)
-                best["g_u"] = differences(best["u"], best["loss"], best["aux"])[2]
-                best["mode"] = "fd"
-            start = best["theta"]
-            taken = max(abs(float(u[k]) - float(best["u"][k])) for k in u)
-            radius = min(radius, 0.5 * taken) if taken > 0 else radius
-            for _ in range(60):  # 2^-60: with step_tol = 0 a cycle stop ends it
-                state = optimizer.init(best["u"])
-                new, state = propose(best["g_u"], state, best["u"], best["loss"])
-                back = _revisits(result.history,
+    runs = []
+    for start_index, u in enumerate(origins):
+        mode = "ad" if gradient == "auto" else gradient
+        build()
+        best = None  # dict(loss, it, theta, aux, u, g_u, mode) of the lowest loss so far
+        run = InverseResult(theta=to_theta(u))
+        state = optimizer.init(u)
+        radius = math.inf  # "auto": trust radius on each step in u, set by the first rejection
+        for it in range(max_iter + 1):
+            t0 = time.perf_counter()
+            loss, aux, g_u = evaluate_redo(evaluate, lambda: build(fresh=True), on_overflow,
+                                           to_theta, u, it)
+            rec = record(it, tf, u, loss, g_u, aux, t0, t_start)
+            rec["gradient"] = mode if g_u is not None else "none (rejected on its loss)"
+            if len(origins) > 1:
+                rec["start"] = start_index
+            loss, theta = rec["loss"], rec["theta"]
+            run.history.append(rec)
+            run.theta, run.aux = theta, aux
+            rose = best is not None and loss > best["loss"]
+            if not rose:
+                if best is not None and math.isfinite(radius):
+                    radius *= 2.0  # an accepted step: widen the trust region again
+                best = dict(loss=loss, it=it, theta=theta, aux=aux, u=u, g_u=g_u, mode=mode)
+            if callback:
+                callback(rec)
+            if loss <= loss_tol:
+                run.converged, run.stop_reason = True, f"loss <= {loss_tol:g}"
+                break
+            if it == max_iter:
+                run.stop_reason = f"max_iter = {max_iter}"
+                break
+            new, back = u, None  # (a point rejected on its loss alone has no gradient)
+            if g_u is not None:
+                new, state = propose(g_u, state, u, loss)
+                back = _revisits(run.history[:-1],
                                  {k: float(tf[k].forward(new[k])) for k in u}, tol)
-                small = all(abs(float(tf[k].forward(new[k])) - start[k]) < tol.get(k, 0.0)
-                            for k in u)
-                if back is None or small:
-                    break
-                radius = 0.5 * max(abs(float(new[k]) - float(best["u"][k])) for k in u)
-            rec["rejected"] = dict(restart_iteration=best["it"], radius_u=radius,
-                                   grad_u_fd={k: float(v) for k, v in best["g_u"].items()})
-            result.theta, result.aux = best["theta"], best["aux"]
-        step = {k: abs(float(tf[k].forward(new[k])) - start[k]) for k in u}
-        if all(step[k] < tol.get(k, 0.0) for k in u):
-            result.converged = True
-            result.stop_reason = "step < step_tol"
-            break
-        if back is not None:  # deterministic: the same points would follow again
-            were = ", ".join(f"{k}={result.history[back]['theta'][k]:.4g}" for k in u)
-            result.stop_reason = (
-                f"cycle: the next step returns to iteration {back}'s parameters ({were}) from "
-                f"{', '.join(f'{k}={v:.4g}' for k, v in start.items())}: the gradient "
-                "disagrees with the loss change (a noisy or non-smooth objective)")
-            break
-        u = new
-    if not result.converged and best is not None and best["it"] != result.history[-1]["iteration"]:
-        result.theta, result.aux = best["theta"], best["aux"]  # unconverged: the lowest loss
-        result.stop_reason += f"; returned iteration {best['it']}, the lowest loss"
+            start = theta  # the point the step is taken from
+            if gradient == "auto" and (rose or back is not None):
+                # the step raised the loss (or leads back to a point no better): reject it.
+                # From the lowest-loss iterate, with differences over smooth_rel_step (the
+                # exact slope may be what misled: a loss rough below the step's scale) and a
+                # trust radius of half the rejected step in u, halved again while the step
+                # would land on an iterate already evaluated (its loss is known to be no
+                # lower)
+                if mode == "ad":
+                    mode = "fd"
+                    build()
+                if best["mode"] != "fd":  # differences at the best point (its loss is known)
+                    best["g_u"] = differences(best["u"], best["loss"], best["aux"])[2]
+                    best["mode"] = "fd"
+                start = best["theta"]
+                taken = max(abs(float(u[k]) - float(best["u"][k])) for k in u)
+                radius = min(radius, 0.5 * taken) if taken > 0 else radius
+                for _ in range(60):  # 2^-60: with step_tol = 0 a cycle stop ends it
+                    state = optimizer.init(best["u"])
+                    new, state = propose(best["g_u"], state, best["u"], best["loss"])
+                    back = _revisits(run.history,
+                                     {k: float(tf[k].forward(new[k])) for k in u}, tol)
+                    small = all(abs(float(tf[k].forward(new[k])) - start[k])
+                                < tol.get(k, 0.0) for k in u)
+                    if back is None or small:
+                        break
+                    radius = 0.5 * max(abs(float(new[k]) - float(best["u"][k])) for k in u)
+                rec["rejected"] = dict(restart_iteration=best["it"], radius_u=radius,
+                                       grad_u_fd={k: float(v) for k, v in best["g_u"].items()})
+                run.theta, run.aux = best["theta"], best["aux"]
+            step = {k: abs(float(tf[k].forward(new[k])) - start[k]) for k in u}
+            if all(step[k] < tol.get(k, 0.0) for k in u):
+                run.converged = True
+                run.stop_reason = "step < step_tol"
+                break
+            if back is not None:  # deterministic: the same points would follow again
+                were = ", ".join(f"{k}={run.history[back]['theta'][k]:.4g}" for k in u)
+                run.stop_reason = (
+                    f"cycle: the next step returns to iteration {back}'s parameters ({were}) "
+                    f"from {', '.join(f'{k}={v:.4g}' for k, v in start.items())}: the "
+                    "gradient disagrees with the loss change (a noisy or non-smooth objective)")
+                break
+            u = new
+        if not run.converged and best is not None and best["it"] != run.history[-1]["iteration"]:
+            run.theta, run.aux = best["theta"], best["aux"]  # unconverged: the lowest loss
+            run.stop_reason += f"; returned iteration {best['it']}, the lowest loss"
+        final = min(h["loss"] for h in run.history
+                    if all(h["theta"][k] == run.theta[k] for k in run.theta))
+        runs.append((final, start_index, run))
+        result.starts.append(dict(start=run.history[0]["theta"], theta=run.theta, loss=final,
+                                  iterations=len(run.history) - 1, converged=run.converged,
+                                  stop_reason=run.stop_reason))
+    final, chosen, run = min(runs, key=lambda r: (r[0], r[1]))
+    result.theta, result.aux, result.history = run.theta, run.aux, run.history
+    result.converged, result.stop_reason = run.converged, run.stop_reason
+    if len(runs) > 1:
+        result.stop_reason += (f"; start {chosen} of {len(runs)} (lowest final loss "
+                               f"{final:.4g})")
     result.wall_time_s = time.perf_counter() - t_start
     return result
