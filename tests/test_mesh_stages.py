@@ -164,9 +164,9 @@ def test_sweep_time_step_survives_the_spin_pulse_at_the_highest_reynolds_number(
 
 def test_near_wall_ring_and_its_loss_weight():
     """The ring is the predicted nodes one mesh edge from a wall node; the weighted loss is
-    the weighted node mean of the one-step errors (weight 1 = the unweighted loss)."""
-    from diffgns.mesh.meshnet import near_wall
-    from diffgns.mesh.stages import loss_weights
+    the weighted node mean of the one-step errors: velocity on the advanced nodes, pressure
+    on every mesh vertex, walls included (weight 1 = the unweighted loss)."""
+    from diffgns.mesh.meshnet import PAD, loss_weights, near_wall
 
     pos, cells, types = _grid_mesh(6, 6)  # walls at rows j = 0 and 5
     g = pad_mesh(pos, cells, types, 48, 192, NU)
@@ -180,8 +180,11 @@ def test_near_wall_ring_and_its_loss_weight():
     np.testing.assert_array_equal(np.asarray(near_wall(g)), ring)
     j = np.arange(36) % 6  # rows 2 and 3 are two edges from the walls
     assert not ring[:36][np.isin(j, (2, 3))].any() and ring.sum() >= 8
-    w = np.asarray(loss_weights(g, 4.0))
-    np.testing.assert_array_equal(w, np.where(ring, 4.0, np.asarray(g.predicted, float)))
+    w_v, w_p = (np.asarray(w) for w in loss_weights(g, 4.0))
+    np.testing.assert_array_equal(w_v, np.where(ring, 4.0, np.asarray(g.predicted, float)))
+    real = np.asarray(g.node_type) != PAD
+    np.testing.assert_array_equal(w_p, np.where(ring, 4.0, real.astype(float)))
+    assert (w_p[np.asarray(g.node_type) == WALL] == 1.0).all() and (w_p[~real] == 0).all()
 
     model = _model()
     params = model.init_network(jax.random.PRNGKey(0), g)
@@ -191,16 +194,25 @@ def test_near_wall_ring_and_its_loss_weight():
     key = jax.random.PRNGKey(0)
     new_v, new_p = model.advance(params, g, v[0], v[0])
     s = model.stats.target.std
-    e = (np.asarray(((new_v - v[1]) / s[:2]) ** 2).sum(1)
-         + np.asarray(((new_p - p[0]) / s[2]) ** 2))
+    e_v = np.asarray(((new_v - v[1]) / s[:2]) ** 2).sum(1)
+    e_p = np.asarray(((new_p - p[0]) / s[2]) ** 2)
     for weight in (1.0, 4.0):
-        ww = np.asarray(loss_weights(g, weight))
-        want = (ww * e).sum() / (3 * ww.sum())
+        wv, wp = (np.asarray(w) for w in loss_weights(g, weight))
+        want = ((wv * e_v).sum() + (wp * e_p).sum()) / (2 * wv.sum() + wp.sum())
         got = unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=weight)
         np.testing.assert_allclose(float(got), want, rtol=1e-5)
     # the weight changes the loss: the ring's errors differ from the others' on this data
     assert abs(float(unrolled_loss(model, params, g, v, p, key, 0.0, near_wall_weight=4.0))
                - float(unrolled_loss(model, params, g, v, p, key, 0.0))) > 1e-4
+    # a wall vertex's pressure counts (the lift is read there); its velocity, held, does not
+    wall = int(np.flatnonzero(np.asarray(g.node_type) == WALL)[0])
+    base = float(unrolled_loss(model, params, g, v, p, key, 0.0))
+    assert float(unrolled_loss(model, params, g, v, p.at[0, wall].add(1.0), key, 0.0)) > base
+    moved = v.at[1, wall].add(1.0)
+    assert float(unrolled_loss(model, params, g, moved, p, key, 0.0)) == pytest.approx(base)
+    pad = 47  # and padding counts for neither
+    assert float(unrolled_loss(model, params, g, v.at[1, pad].add(1.0), p.at[0, pad].add(1.0),
+                               key, 0.0)) == pytest.approx(base)
 
 
 def test_staged_training_starts_from_a_model_and_refuses_bad_options(tmp_path):

@@ -92,6 +92,37 @@ class MeshGraph:
         return (self.node_type == FLUID) | (self.node_type == OUTFLOW)
 
 
+def loss_weights(graph: MeshGraph, near_wall_weight: float = 1.0) -> tuple[jax.Array,
+                                                                          jax.Array]:
+    """(velocity, pressure) per-node loss weights, (N,) each.
+
+    Velocity errors count on the nodes the model advances (fluid and outflow); pressure
+    errors on every mesh vertex (not padding), walls and inflow included: the velocity there
+    is held, but the pressure is the model's output, and on the cylinder it is what the lift
+    and the Strouhal number are computed from. Until 2026-12-05 the pressure counted on the
+    advanced nodes only, so the cylinder's pressure was never trained: given the CFD's own
+    velocities, the latent-64 model's pressure lift had 0.36-0.48 of the CFD's amplitude at
+    the five held-out Reynolds numbers while its rollouts' wake velocities oscillated at
+    0.96-0.98 of the CFD's (Re 165-275) (issue 23). ``near_wall_weight`` multiplies both on
+    the first fluid ring off the walls (:func:`near_wall`).
+    """
+    w_v = graph.predicted.astype(graph.mesh_pos.dtype)
+    w_p = (graph.node_type != PAD).astype(graph.mesh_pos.dtype)
+    if near_wall_weight != 1.0:
+        ring = jnp.where(near_wall(graph), near_wall_weight, 1.0)
+        w_v, w_p = w_v * ring, w_p * ring
+    return w_v, w_p
+
+
+def node_loss(graph: MeshGraph, err_v: jax.Array, err_p: jax.Array,
+              near_wall_weight: float = 1.0) -> jax.Array:
+    """Weighted mean squared normalised error over the velocity components (N, 2) and the
+    pressure (N,) of one frame (:func:`loss_weights`); dimensionless."""
+    w_v, w_p = loss_weights(graph, near_wall_weight)
+    total = jnp.sum(w_v[:, None] * err_v**2) + jnp.sum(w_p * err_p**2)
+    return total / jnp.maximum(2.0 * w_v.sum() + w_p.sum(), 1.0)
+
+
 def near_wall(graph: MeshGraph) -> jax.Array:
     """(N,) bool: predicted (fluid or outflow) nodes joined by a mesh edge to a wall node,
     the first ring off the cylinder and the channel walls (padded edges ignored)."""

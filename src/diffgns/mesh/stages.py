@@ -49,7 +49,7 @@ from diffgns.graph.fit import (
 from diffgns.interface import scan_frames
 from diffgns.io.dataset import read_metadata
 from diffgns.io.files import check_input_file
-from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, near_wall
+from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, node_loss
 from diffgns.mesh.train import (
     fine_tune_start,
     graphs_of,
@@ -107,16 +107,6 @@ def stage_at(stages: Sequence[Stage], step: int) -> Stage:
     return stages[-1]
 
 
-def loss_weights(graph: MeshGraph, near_wall_weight: float = 1.0) -> jax.Array:
-    """(N,) per-node loss weights: 0 on nodes the model does not advance, ``near_wall_weight``
-    on the first ring of fluid nodes off the walls (:func:`~diffgns.mesh.meshnet.near_wall`),
-    1 elsewhere."""
-    w = graph.predicted.astype(graph.mesh_pos.dtype)
-    if near_wall_weight == 1.0:
-        return w
-    return w * jnp.where(near_wall(graph), near_wall_weight, 1.0)
-
-
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
                   key: jax.Array, noise_std, checkpoint: bool = True,
                   near_wall_weight: float = 1.0) -> jax.Array:
@@ -128,15 +118,13 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         key: noise key; ``noise_std`` (m/s, scalar, may be traced) on fluid nodes of frame t.
         checkpoint: every frame under ``jax.checkpoint`` (same values, less memory).
         near_wall_weight: static weight of the first fluid ring off the walls in the node
-            mean (:func:`loss_weights`; 1 = every predicted node alike).
+            mean (:func:`~diffgns.mesh.meshnet.loss_weights`; 1 = every node alike).
     Returns:
         scalar loss (dimensionless).
     """
     v0 = v_win[0]
     noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
     v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
-    w = loss_weights(graph, near_wall_weight).astype(v0.dtype)
-    norm = 3 * jnp.maximum(w.sum(), 1.0)
     s_dv = model.stats.target.std[:2]
 
     def body(v, data):
@@ -144,7 +132,7 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         new_v, p = model.advance(params, graph, v, v0)  # boundary nodes held at the data
         err_v = (new_v - v_next) / s_dv
         err_p = (p - p_next) / model.stats.target.std[2]
-        loss = (jnp.sum(w[:, None] * err_v**2) + jnp.sum(w * err_p**2)) / norm
+        loss = node_loss(graph, err_v, err_p, near_wall_weight)
         return new_v, loss
 
     _, losses = scan_frames(body, v_in, (v_win[1:], p_win),

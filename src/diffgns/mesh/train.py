@@ -6,7 +6,8 @@ batch and noise of a step are a function of (seed, step) (:func:`~diffgns.graph.
 
 One sample is one (trajectory, frame) pair: input velocity ``v_t`` with Gaussian noise
 (``noise_std``, m/s) on fluid nodes, target ``[v_{t+1} - v_noisy, p_{t+1}]`` normalised;
-the loss is the mean squared error over fluid and outflow nodes.
+the loss is the mean squared error of the velocity over fluid and outflow nodes and of the
+pressure over every mesh vertex (:func:`~diffgns.mesh.meshnet.loss_weights`).
 
 With ``TrainConfig.push_forward = K > 0`` each sample first rolls the model forward
 ``k ~ U{0..K}`` frames from the data without gradient (the push-forward trick of
@@ -36,6 +37,7 @@ from diffgns.mesh.meshnet import (
     MeshNetConfig,
     MeshStats,
     mesh_edges,
+    node_loss,
     pad_mesh,
 )
 from diffgns.models import model_dir as _model_folder
@@ -171,8 +173,7 @@ def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key, n_pu
     v_in = v + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     target = jnp.concatenate([v_next - v_in, p_next[:, None]], axis=-1)
     err = model.normalized_output(params, graph, v_in) - model.stats.target.normalize(target)
-    w = graph.predicted.astype(err.dtype)
-    return jnp.sum(w[:, None] * err**2) / (3 * jnp.maximum(w.sum(), 1.0))
+    return node_loss(graph, err[:, :2], err[:, 2])
 
 
 def _grow_node_inputs(path, old: jax.Array, new: jax.Array) -> jax.Array:
