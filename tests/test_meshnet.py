@@ -261,3 +261,25 @@ def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_pat
     _, p = mesh_train.train(tmp_path / "d.h5", tmp_path / "new", new_cfg, tc2, progress=False,
                             init_from=tmp_path / "old" / "model")
     assert np.any(np.asarray(p["params"]["node_encoder"]["hidden_0"]["kernel"])[2] != 0)
+
+
+def test_teacher_forced_pressure_is_the_model_pressure_of_each_given_frame():
+    """The evaluation's pressure-head check: one compiled map over frames equals predicting
+    each frame's pressure from that frame's given velocity (not from the model's rollout)."""
+    from diffgns.mesh.evaluate import teacher_forced_pressure
+
+    pos, cells, types = _grid_mesh()
+    g = pad_mesh(pos, cells, types, 32, 128, NU)
+    model = _model()
+    params = model.init_network(jax.random.PRNGKey(2), g)
+    v = np.random.default_rng(0).normal(size=(4, 32, 2)).astype(np.float32)
+    got = teacher_forced_pressure(model, params, g, v)
+    want = np.stack([np.asarray(model.predict(params, g, jnp.asarray(f))[1]) for f in v])
+    assert got.shape == (4, 32)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    # frame 2's pressure comes from frame 2's velocity alone
+    v2 = v.copy()
+    v2[1] += 1.0
+    again = teacher_forced_pressure(model, params, g, v2)
+    np.testing.assert_array_equal(again[[0, 2, 3]], got[[0, 2, 3]])
+    assert np.abs(again[1] - got[1]).max() > 1e-4
