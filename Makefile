@@ -196,5 +196,8 @@ meshnet-train: $(VENV)/.installed-test
 	nice -n 19 $(PY) -m diffgns.mesh.stages --data data/sweep_train.h5 --out $(MESHNET_RUN) \
 		--stages $(MESHNET_STAGES) $(MESHNET_NET)
 
+# meshnet-eval: the shipped model by default; MESHNET_MODEL=runs/<run>/model for a run
+MESHNET_MODEL ?= meshnet_sweep
 meshnet-eval: $(VENV)/.installed-test
-	$(PY) -m diffgns.mesh.evaluate --model $(MESHNET_RUN)/model --data data/sweep_heldout.h5
+	@test -f data/sweep_heldout.h5 || { echo "data/sweep_heldout.h5 missing: make meshnet-data"; exit 2; }
+	$(PY) -m diffgns.mesh.evaluate --model $(MESHNET_MODEL) --data data/sweep_heldout.h5
