@@ -33,7 +33,7 @@ import jax
 import numpy as np
 import protocol
 from granular_heldout import samples, scene_of
-from hybrid_pareto import parse_schedule
+from hybrid_pareto import parse_schedule, schedule_name
 
 DEFAULT_SCHEDULES = ("GNS", "K2M5", "K4M4")
 POS = "final_position_error_rel_displacement"
@@ -77,7 +77,7 @@ def main(argv=None) -> None:
         jax.clear_caches()
         scene = scene_of(every[c])
         for sched in scheds:
-            row = dict(case=c, family=families[c], schedule=short_name(sched),
+            row = dict(case=c, family=families[c], schedule=schedule_name(sched),
                        **run_case(scene, gns, params, info, sched, refs[c]))
             rows.append(row)
             run.print(f"case {c:>2} {families[c]:<10} {row['schedule']:<6} position error "
@@ -89,29 +89,16 @@ def main(argv=None) -> None:
                       f"{1e3 * row['max_clamp_shift_gns_frames_m']:.3g} mm)", tag=False)
     tables, worse = {}, {}
     for sched in scheds:
-        name = short_name(sched)
+        name = schedule_name(sched)
         mine = [r for r in rows if r["schedule"] == name]
         tables[name] = per_family(mine, [r["family"] for r in mine])
         if sched.mpm_frames:
             worse[name] = worse_than_gns(rows, name)
     print_tables(run, tables, worse, rows)
     path = run.finish(args.out, dict(model=str(args.model), data=str(args.data),
-                                     schedules=[short_name(s) for s in scheds], rows=rows,
+                                     schedules=[schedule_name(s) for s in scheds], rows=rows,
                                      tables=tables, worse_than_gns=worse))
     run.print(f"wrote {path}")
-
-
-def short_name(sched) -> str:
-    """The schedule's short name (``GNS``, ``K2M5``, ``K2M5:reset``, ...)."""
-    if sched.mpm_frames == 0:
-        name = "GNS"
-    elif sched.adaptive_tol:
-        name = f"K{sched.mpm_frames}A{sched.adaptive_tol:g}"
-    else:
-        name = f"K{sched.mpm_frames}M{sched.gns_frames}"
-    opts = [o for o, default in ((sched.handoff, "carry"), (sched.particle_map, "affine"))
-            if o != default]
-    return ":".join([name, *opts])
 
 
 def run_case(scene, gns, params, info: dict, sched, ref) -> dict:

@@ -94,6 +94,19 @@ def parse_schedule(spec: str) -> Schedule:
     raise argparse.ArgumentTypeError(f"schedule {spec!r}: use GNS, K<k>M<m> or K<k>A<tol>")
 
 
+def schedule_name(sched: Schedule) -> str:
+    """The name :func:`parse_schedule` reads back (``GNS``, ``K2M5``, ``K2M5:reset``, ...)."""
+    if sched.mpm_frames == 0:
+        name = "GNS"
+    elif sched.adaptive_tol:
+        name = f"K{sched.mpm_frames}A{sched.adaptive_tol:g}"
+    else:
+        name = f"K{sched.mpm_frames}M{sched.gns_frames}"
+    opts = [o for o, default in ((sched.handoff, "carry"), (sched.particle_map, "affine"))
+            if o != default]
+    return ":".join([name, *opts])
+
+
 def parse_case(spec: str) -> tuple[float, float]:
     """``"a:phi"`` -> (aspect ratio, friction angle in degrees)."""
     try:

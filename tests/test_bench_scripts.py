@@ -37,8 +37,8 @@ def test_schedule_names_give_the_schedules_of_the_published_table():
 
 @pytest.mark.parametrize("name", ["GNS", "K2M5", "K4M4:reset", "K2A0.02", "K4M4:rigid",
                                   "GNS:rigid", "K4M4:reconstruct:rigid"])
-def test_hybrid_families_names_a_schedule_as_hybrid_pareto_parses_it(name):
-    assert hf.short_name(hp.parse_schedule(name)) == name
+def test_a_schedule_name_reads_back_as_the_same_schedule(name):
+    assert hp.schedule_name(hp.parse_schedule(name)) == name
 
 
 def test_hybrid_families_lists_exactly_the_cases_where_the_hybrid_is_worse():

@@ -265,7 +265,8 @@ def test_fine_tuning_adds_the_viscosity_input_without_changing_the_start(tmp_pat
 
 def test_teacher_forced_pressure_is_the_model_pressure_of_each_given_frame():
     """The evaluation's pressure-head check: one compiled map over frames equals predicting
-    each frame's pressure from that frame's given velocity (not from the model's rollout)."""
+    each frame's pressure from that frame's given velocity (not from the model's rollout),
+    and a second call on the same mesh compiles nothing new."""
     from diffgns.mesh.evaluate import teacher_forced_pressure
 
     pos, cells, types = _grid_mesh()
@@ -283,3 +284,6 @@ def test_teacher_forced_pressure_is_the_model_pressure_of_each_given_frame():
     again = teacher_forced_pressure(model, params, g, v2)
     np.testing.assert_array_equal(again[[0, 2, 3]], got[[0, 2, 3]])
     assert np.abs(again[1] - got[1]).max() > 1e-4
+    from diffgns.mesh.evaluate import _pressures
+
+    assert _pressures._cache_size() == 1  # one program for every call on this mesh

@@ -302,7 +302,7 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                 rec["start"] = start_index
             loss, theta = rec["loss"], rec["theta"]
             run.history.append(rec)
-            run.theta, run.aux = theta, aux
+            run.theta, run.aux, returned = theta, aux, loss
             rose = best is not None and loss > best["loss"]
             if not rose:
                 if best is not None and math.isfinite(radius):
@@ -350,7 +350,7 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                     radius = 0.5 * max(abs(float(new[k]) - float(best["u"][k])) for k in u)
                 rec["rejected"] = dict(restart_iteration=best["it"], radius_u=radius,
                                        grad_u_fd={k: float(v) for k, v in best["g_u"].items()})
-                run.theta, run.aux = best["theta"], best["aux"]
+                run.theta, run.aux, returned = best["theta"], best["aux"], best["loss"]
             step = {k: abs(float(tf[k].forward(new[k])) - start[k]) for k in u}
             if all(step[k] < tol.get(k, 0.0) for k in u):
                 run.converged = True
@@ -365,12 +365,11 @@ def optimize(loss_fn: Callable, theta0: dict, optimizer: optax.GradientTransform
                 break
             u = new
         if not run.converged and best is not None and best["it"] != run.history[-1]["iteration"]:
-            run.theta, run.aux = best["theta"], best["aux"]  # unconverged: the lowest loss
+            # unconverged: the lowest loss
+            run.theta, run.aux, returned = best["theta"], best["aux"], best["loss"]
             run.stop_reason += f"; returned iteration {best['it']}, the lowest loss"
-        final = min(h["loss"] for h in run.history
-                    if all(h["theta"][k] == run.theta[k] for k in run.theta))
-        runs.append((final, start_index, run))
-        result.starts.append(dict(start=run.history[0]["theta"], theta=run.theta, loss=final,
+        runs.append((returned, start_index, run))
+        result.starts.append(dict(start=run.history[0]["theta"], theta=run.theta, loss=returned,
                                   iterations=len(run.history) - 1, converged=run.converged,
                                   stop_reason=run.stop_reason))
     final, chosen, run = min(runs, key=lambda r: (r[0], r[1]))

@@ -24,6 +24,8 @@ For one trajectory of F frames (:func:`evaluate_trajectory`):
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -76,8 +78,13 @@ def teacher_forced_pressure(model: MeshNet, params, graph, velocities) -> np.nda
     """(F, N) the model's next pressure (m^2/s^2) from each of ``velocities`` (F, N, 2) m/s,
     frame by frame (the data's velocities, not the model's own rollout), one compiled
     ``lax.map``."""
-    run = jax.jit(lambda vv: jax.lax.map(lambda v: model.predict(params, graph, v)[1], vv))
-    return np.asarray(run(jnp.asarray(velocities)))
+    return np.asarray(_pressures(model, params, graph, jnp.asarray(velocities)))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _pressures(model: MeshNet, params, graph, velocities):
+    """Compiled once per model and mesh shape (not once per trajectory)."""
+    return jax.lax.map(lambda v: model.predict(params, graph, v)[1], velocities)
 
 
 def evaluate_trajectory(model: MeshNet, params, traj: dict, padding, long_factor: int = 3,
