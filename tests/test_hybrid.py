@@ -81,9 +81,9 @@ def test_handoff_moves_particles_with_their_node_and_sets_F():
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
     st = st.replace(F=st.F * 1.01)
     for mode in ("reset", "carry", "reconstruct"):
-        new, clamp = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, mode, lo,
-                                          hi, particle_map="rigid")
-        assert int(clamp.moved) == 0
+        new, clamp, kept = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, mode,
+                                                lo, hi, particle_map="rigid")
+        assert int(clamp.moved) == 0 and int(kept) == 0
         np.testing.assert_allclose(new.x - st.x, disp[cluster].T, atol=1e-7)
         np.testing.assert_allclose(new.v, vel[cluster].T, rtol=1e-6)
         np.testing.assert_allclose(new.C[0, 1], 1.0)
@@ -94,6 +94,33 @@ def test_handoff_moves_particles_with_their_node_and_sets_F():
                                         for k in range(3)], rtol=1e-6)
     with pytest.raises(ValueError, match="particle_map"):
         particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi, "warp")
+
+
+def test_reconstruct_keeps_and_counts_F_where_the_node_field_folds_or_explodes():
+    """A node field that changes a cluster's area by more than 4x either way in one frame
+    (or inverts it) has no credible isochoric part: those particles keep their F and are
+    counted; the others get exactly the isochoric update (never a clipped Jacobian)."""
+    sim = MPM(small_scene())
+    st = sim.init()
+    n = st.n_particles
+    cluster = jnp.asarray(np.arange(n) % 4)
+    x_node = node_means(st.x, cluster, jnp.bincount(cluster))
+    zero = jnp.zeros((4, 2))
+    # det(I + G): 1.1 * 0.95 (credible), 0.1 (folds 10x), 5.0 (explodes), -0.5 (inverts)
+    gu = jnp.stack([jnp.diag(jnp.array(d)) for d in
+                    ([0.1, -0.05], [-0.9, 0.0], [4.0, 0.0], [-1.5, 0.0])])
+    lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
+    st = st.replace(F=st.F * 1.01)
+    new, _, kept = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu,
+                                        "reconstruct", lo, hi, particle_map="rigid")
+    c = np.asarray(cluster)
+    assert int(kept) == int(np.sum(c != 0))
+    F, F0 = np.asarray(new.F), np.asarray(st.F)
+    np.testing.assert_array_equal(F[:, :, c != 0], F0[:, :, c != 0])
+    L = np.diag([1.1, 0.95]) / np.sqrt(1.1 * 0.95)
+    np.testing.assert_allclose(F[:, :, c == 0],
+                               np.einsum("ab,bcn->acn", L, F0[:, :, c == 0]), rtol=1e-6)
+    assert np.isfinite(F).all()
 
 
 def test_affine_particle_map_follows_a_linear_node_field():
@@ -114,7 +141,7 @@ def test_affine_particle_map_follows_a_linear_node_field():
     dt = 0.005
     vel, gv, gu = disp / dt, jnp.broadcast_to(G / dt, (4, 2, 2)), jnp.broadcast_to(G, (4, 2, 2))
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
-    new, clamp = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
+    new, clamp, _ = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
     assert int(clamp.moved) == 0
     want = st.x + (u0 + (st.x.T - x0) @ G.T).T
     np.testing.assert_allclose(new.x, want, atol=1e-7)
@@ -122,7 +149,7 @@ def test_affine_particle_map_follows_a_linear_node_field():
     # velocity of the field at the particle's new position (nodes moved by disp)
     v_want = (vel[cluster] + (new.x.T - (x_node + disp)[cluster]) @ (G / dt).T).T
     np.testing.assert_allclose(new.v, v_want, rtol=1e-5, atol=1e-6)
-    rigid, _ = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi,
+    rigid, _, _ = particles_from_nodes(st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi,
                                     particle_map="rigid")
     spread = lambda y: np.asarray(y - node_means(y, cluster, counts)[cluster].T)  # noqa: E731
     np.testing.assert_allclose(spread(rigid.x), spread(st.x), atol=1e-7)
@@ -156,7 +183,7 @@ def test_particle_map_keeps_every_cluster_inside_the_box():
     lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
     G = jnp.array([[0.5, 0.0], [0.0, 0.0]])  # 50% stretch in x over the frame
     zero, gu = jnp.zeros((4, 2)), jnp.broadcast_to(G, (4, 2, 2))
-    new, clamp = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry",
+    new, clamp, _ = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry",
                                       lo, hi)
     assert int(clamp.moved) == 0
     x, x0 = np.asarray(new.x), np.asarray(st.x)
@@ -176,13 +203,13 @@ def test_particle_map_keeps_every_cluster_inside_the_box():
             assert s == pytest.approx(1.0, abs=1e-6)  # fits: the affine map unchanged
     # with a margin (half a particle spacing in the hybrid) nobody gets closer to a wall than
     # the margin, or than it already was
-    near, _ = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry", lo,
+    near, _, _ = particles_from_nodes(st, cluster, x_node, zero, zero, gu * 0, gu, "carry", lo,
                                    hi, margin=0.002)
     assert np.asarray(near.x)[0].min() >= min(0.002, x0[0].min()) - 1e-9
     np.testing.assert_allclose(node_means(near.x, cluster, counts), x_node, atol=1e-7)
     # a rigid move of 2 cm to the left: the left clusters' wall-side particles would cross
     disp = jnp.asarray([[-0.02, 0.0]] * 4)
-    new, clamp = particles_from_nodes(st, cluster, x_node, disp, disp / 0.005, gu * 0, gu * 0,
+    new, clamp, _ = particles_from_nodes(st, cluster, x_node, disp, disp / 0.005, gu * 0, gu * 0,
                                       "carry", lo, hi, particle_map="rigid")
     assert int(clamp.moved) == 0
     x = np.asarray(new.x)
@@ -341,7 +368,7 @@ def test_hybrid_reallocation_checks_node_compaction_like_the_gns(model):
 
     def frames(last):
         nodes = np.stack([x0, x0, last])
-        return HybridFrame(None, None, nodes, None, None, None, None)
+        return HybridFrame(None, None, nodes, None, None, None, None, None)
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", CompactionWarning)

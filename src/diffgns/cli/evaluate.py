@@ -116,6 +116,10 @@ def _hybrid(args) -> int:
         warn = clamp_warning(r, r["label"])
         if warn:
             print(warn)
+        if r.get("f_kept_particles"):
+            print(f"warning: {r['label']}: the reconstruct hand-off kept the deformation "
+                  f"gradient of {r['f_kept_particles']} particle-frames whose node field "
+                  "changed its area more than 4x in one frame (or folded it)")
     dest = Path(args.out)
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "hybrid_comparison.json").write_text(json.dumps(out["rows"], indent=2))

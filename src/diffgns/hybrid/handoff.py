@@ -14,7 +14,9 @@ GNS nodes are cluster means of MPM particles (:func:`diffgns.graph.data.coarse_g
   unchanged from the last MPM frame, or updated with the isochoric part of the displacement
   gradient of the node field, ``F <- (I + grad u) F / sqrt(det(I + grad u))``
   ("reconstruct"), after which the MPM's return mapping
-  projects it back onto the yield surface.
+  projects it back onto the yield surface. Where ``det(I + grad u)`` is outside
+  :data:`RECONSTRUCT_JACOBIAN` the particle keeps its F, and the hybrid counts it
+  (``HybridFrame.f_kept``).
 
 Gradients of the node fields are least-squares fits over the GNS graph's edges: for node i
 with neighbours j, ``G_i = (sum_j du_ij dX_ij^T) (sum_j dX_ij dX_ij^T)^-1``.
@@ -45,6 +47,11 @@ import jax.numpy as jnp
 from diffgns.clamp import clamp_positions
 
 HANDOFFS = ("reset", "carry", "reconstruct")
+# "reconstruct" trusts the node field's displacement gradient while it changes a cluster's
+# area by at most this factor either way in one frame; outside (a folded or exploding
+# node field) no isochoric part exists or means anything, so the particle keeps its F and is
+# counted (never a silently clipped Jacobian, which compresses the skeleton instead)
+RECONSTRUCT_JACOBIAN = (0.25, 4.0)
 PARTICLE_MAPS = ("affine", "rigid")
 
 
@@ -212,9 +219,12 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
             of, m (None: none).
 
     Returns:
-        ``(state, ClampCount)``: the new particle state, every particle inside the box by
-        :func:`keep_inside`; the count is of a final safety clamp, which moves a particle only
-        if its node itself is outside the box (the GNS counts that clamp of the node).
+        ``(state, ClampCount, kept)``: the new particle state, every particle inside the box
+        by :func:`keep_inside`; the count is of a final safety clamp, which moves a particle
+        only if its node itself is outside the box (the GNS counts that clamp of the node).
+        ``kept``: int32, particles whose F "reconstruct" left unchanged because the node
+        field's area change ``det(I + grad u)`` was outside :data:`RECONSTRUCT_JACOBIAN`
+        (always 0 for the other hand-offs).
     """
     if particle_map not in PARTICLE_MAPS:
         raise ValueError(f"particle_map must be one of {PARTICLE_MAPS}, got {particle_map!r}")
@@ -230,6 +240,7 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         v = v + jnp.einsum("abn,bn->an", Gv, x - node_new)
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
     C = Gv
+    kept = jnp.zeros((), jnp.int32)
     if handoff == "reset":
         F = jnp.broadcast_to(jnp.eye(2, dtype=state.F.dtype)[:, :, None], state.F.shape)
     elif handoff == "carry":
@@ -239,12 +250,15 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         # Isochoric part only: a 1% volumetric error of the coarse node field would load a
         # stiff granular skeleton with ~10x its lithostatic pressure.
         det = L[0, 0] * L[1, 1] - L[0, 1] * L[1, 0]
-        L = L / jnp.sqrt(jnp.clip(det, 0.25, 4.0))
-        F = jnp.einsum("abn,bcn->acn", L, state.F)
+        lo_j, hi_j = RECONSTRUCT_JACOBIAN
+        credible = (det >= lo_j) & (det <= hi_j)
+        L = L / jnp.sqrt(jnp.where(credible, det, 1.0))
+        F = jnp.where(credible, jnp.einsum("abn,bcn->acn", L, state.F), state.F)
+        kept = jnp.sum(~credible, dtype=jnp.int32)
     else:
         raise ValueError(f"handoff must be one of {HANDOFFS}, got {handoff!r}")
     return state.replace(x=x.astype(state.x.dtype), v=v.astype(state.v.dtype),
-                         C=C.astype(state.C.dtype), F=F.astype(state.F.dtype)), clamp
+                         C=C.astype(state.C.dtype), F=F.astype(state.F.dtype)), clamp, kept
 
 
 def specific_energy(x_prev: jax.Array, x: jax.Array, weights: jax.Array, gravity: jax.Array,

@@ -130,6 +130,8 @@ class HybridState(NamedTuple):
         t: int32, frames advanced since :meth:`Hybrid.init`.
         clamp: :class:`~diffgns.clamp.ClampCount` of the last frame: positions moved into the
             domain by the MPM's substeps, the GNS's node prediction or the particle map.
+        f_kept: int32, particles of the last frame whose F the "reconstruct" hand-off kept
+            (node field's area change outside ``handoff.RECONSTRUCT_JACOBIAN``).
     """
 
     mpm: Any
@@ -142,12 +144,14 @@ class HybridState(NamedTuple):
     used_mpm: jax.Array
     t: jax.Array
     clamp: ClampCount
+    f_kept: jax.Array
 
 
 class HybridFrame(NamedTuple):
     """What the hybrid observes at a frame: particles (N, 2) m and m/s, nodes (M, 2) m, the
     simulator of the frame just run (1 = MPM), the indicator (J/kg), the overflow flag and
-    the frame's position clamps (:class:`~diffgns.clamp.ClampCount`)."""
+    the frame's position clamps (:class:`~diffgns.clamp.ClampCount`) and the particles whose
+    F the "reconstruct" hand-off kept (int32)."""
 
     positions: jax.Array
     velocities: jax.Array
@@ -156,6 +160,7 @@ class HybridFrame(NamedTuple):
     indicator: jax.Array
     overflow: jax.Array
     clamp: ClampCount
+    f_kept: jax.Array
 
 
 @dataclasses.dataclass
@@ -167,6 +172,9 @@ class HybridResult:
     accumulated in the current GNS segment, J/kg (0 on MPM frames). final_state: MPM state
     after the last frame. frame_dt: s. clamped: (T+1,) positions moved into the domain in
     each frame (MPM substeps, GNS nodes, particle map); clamp_shift: (T+1,) largest move, m.
+    f_kept: (T+1,) particles whose F the "reconstruct" hand-off kept in each frame (their
+    node field's area change was not credible:
+    :data:`~diffgns.hybrid.handoff.RECONSTRUCT_JACOBIAN`).
     """
 
     positions: jax.Array
@@ -177,14 +185,17 @@ class HybridResult:
     frame_dt: float
     clamped: jax.Array
     clamp_shift: jax.Array
+    f_kept: jax.Array
 
     @property
     def mpm_fraction(self) -> float:
         return float(np.mean(np.asarray(self.mode) == MPM_MODE))
 
     def clamp_summary(self) -> dict:
-        """:func:`diffgns.clamp.clamp_summary` of the run's clamps."""
-        return clamp_summary(self.clamped, self.clamp_shift)
+        """:func:`diffgns.clamp.clamp_summary` of the run's clamps, and ``f_kept_particles``:
+        the hand-off's kept deformation gradients, summed over frames."""
+        return dict(clamp_summary(self.clamped, self.clamp_shift),
+                    f_kept_particles=int(np.sum(np.asarray(self.f_kept))))
 
 
 class Hybrid:
@@ -254,7 +265,7 @@ class Hybrid:
         i0 = jnp.asarray(0, jnp.int32)
         return HybridState(mpm_state, hist, self.gns.allocate(x, extra_capacity), zero, zero,
                            jnp.asarray(MPM_MODE, jnp.int32), i0, jnp.asarray(True), i0,
-                           ClampCount.zero(mpm_state.x.dtype))
+                           ClampCount.zero(mpm_state.x.dtype), i0)
 
     def step(self, params: HybridParams, state: HybridState) -> HybridState:
         """One GNS frame or ``frame_stride`` MPM frames, as the schedule says (pure)."""
@@ -287,7 +298,7 @@ class Hybrid:
         """Particles, nodes, mode of the last frame, indicator and overflow flag."""
         return HybridFrame(state.mpm.x.T, state.mpm.v.T, state.history[:, -1],
                            state.used_mpm.astype(jnp.int32), state.indicator,
-                           did_overflow(state.nbrs), state.clamp)
+                           did_overflow(state.nbrs), state.clamp, state.f_kept)
 
     def reallocate(self, state: HybridState, frames: HybridFrame, first_bad: int,
                    attempt: int) -> HybridState:
@@ -315,7 +326,7 @@ class Hybrid:
         rate = self._energy_change(mpm_params, s.history, x_next)
         hist = jnp.concatenate([s.history[:, 1:], x_next[:, None]], axis=1)
         return s._replace(mpm=mpm_state, history=hist, indicator=jnp.zeros_like(s.indicator),
-                          rate=rate, clamp=clamp)
+                          rate=rate, clamp=clamp, f_kept=jnp.zeros_like(s.f_kept))
 
     def _gns_frame(self, params: HybridParams, material, s: HybridState) -> HybridState:
         hist = s.history
@@ -333,7 +344,7 @@ class Hybrid:
         sched = self.schedule
         needs_grad_u = sched.particle_map == "affine" or sched.handoff == "reconstruct"
         grad_u = lsq_gradient(disp, x, snd, rcv, msk) if needs_grad_u else jnp.zeros_like(grad_v)
-        mpm_state, map_clamp = particles_from_nodes(
+        mpm_state, map_clamp, f_kept = particles_from_nodes(
             s.mpm, self.cluster, x, disp, vel, grad_v, grad_u, sched.handoff, self.lo,
             self.hi, sched.particle_map, self.margin, self.obstacles)
         if sched.handoff == "reconstruct":  # plastic return mapping of the new F
@@ -344,7 +355,7 @@ class Hybrid:
             self._energy_change(params.mpm, hist, x_next) - s.rate)
         hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
         return s._replace(mpm=mpm_state, history=hist, nbrs=nbrs, indicator=indicator,
-                          clamp=node_clamp.merge(map_clamp))
+                          clamp=node_clamp.merge(map_clamp), f_kept=f_kept)
 
     # ------------------------------------------------------------------ public
     def run(self, params: HybridParams, mpm_state, n_frames: int,
@@ -359,4 +370,4 @@ class Hybrid:
                                             max_retries=max_retries)
         return HybridResult(frames.positions, frames.nodes, frames.mode[1:],
                             frames.indicator[1:], final.mpm, self.frame_dt,
-                            frames.clamp.moved, frames.clamp.shift), state
+                            frames.clamp.moved, frames.clamp.shift, frames.f_kept), state
