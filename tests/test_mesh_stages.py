@@ -145,6 +145,23 @@ def test_sweep_one_mesh_one_trajectory_per_reynolds_number_resumes_and_refuses(t
         generate_sweep(tmp_path / "s.h5", Sweep((100.0, 150.0), run=run), progress=False)
     with pytest.raises(InputError, match="--re"):
         Sweep((100.0, -5.0))
+    # a sweep with one Re in common reuses that trajectory bit for bit and runs the other
+    both = generate_sweep(tmp_path / "r.h5", Sweep((200.0, 150.0), run=run), workers=1,
+                          progress=False, reuse=tmp_path / "s.h5")
+    assert both["reused"] == 1 and [c[1] for c in both["cases"]] == [150.0]
+    r200, r150 = load_cylinder(tmp_path / "r.h5")
+    assert r200["attrs"]["reynolds"] == 200.0 and r200["attrs"]["index"] == 0
+    np.testing.assert_array_equal(r200["velocity"], b["velocity"])
+    np.testing.assert_array_equal(r200["pressure"], b["pressure"])
+    assert not np.array_equal(r150["velocity"], r200["velocity"])
+    other = CylinderRun(n_frames=4, frame_dt=0.02, spinup=0.0, kick=1.0, kick_time=0.3,
+                        **COARSE_MESH)  # another frame count: not the same data
+    with pytest.raises(InputError, match=r"another sweep recipe \(differs in \['run'\]\)"):
+        generate_sweep(tmp_path / "o.h5", Sweep((100.0,), run=other), progress=False,
+                       reuse=tmp_path / "s.h5")
+    with pytest.raises(InputError, match="not a finished sweep file"):
+        generate_sweep(tmp_path / "o.h5", Sweep((100.0,), run=run), progress=False,
+                       reuse=tmp_path / "missing.h5")
 
 
 @pytest.mark.slow  # ~20 s: 0.36 s of CFD at the sweep's time step

@@ -16,7 +16,10 @@ cylinder, ``kick``, breaks the symmetry so shedding starts within a few periods)
 cuts it into windows (one-step samples or K-frame unrolls). Trajectory ``i`` is the CFD run
 of ``reynolds[i]``, independent of the others, so runs go to ``workers`` processes (one core
 each) and an interrupted sweep resumes by skipping stored keys
-(:class:`~diffgns.mesh.dataset.CylinderDatasetWriter`).
+(:class:`~diffgns.mesh.dataset.CylinderDatasetWriter`). The CFD is deterministic, so a
+trajectory already stored in another sweep file of the same recipe (``reuse``, matched by
+Re) is copied from it instead of run again: one wide sweep can feed the narrower training
+files of earlier stages in seconds.
 
 Command line (``make meshnet-data`` runs the training and held-out sweeps)::
 
@@ -25,6 +28,7 @@ Command line (``make meshnet-data`` runs the training and held-out sweeps)::
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import signal
@@ -35,8 +39,9 @@ from multiprocessing import get_context
 from pathlib import Path
 
 from diffgns.errors import InputError, Interrupted, run_module
+from diffgns.io.dataset import read_metadata
 from diffgns.mesh.datagen import CylinderRun, simulate_case
-from diffgns.mesh.dataset import CylinderDatasetWriter
+from diffgns.mesh.dataset import CylinderDatasetWriter, iter_cylinder_dataset
 
 #: mesh settings of the sweep (vertex count and the check against the finer meshes in the
 #: guide): edge 0.01 m at the cylinder, 0.02 m along 1 m of wake, at most 0.045 m elsewhere.
@@ -111,18 +116,51 @@ def _simulate(job: tuple[int, dict, CylinderRun]) -> tuple[int, dict, dict, floa
     return i, arrays, attrs, time.perf_counter() - t0
 
 
+def reusable(source: str | Path, sweep: Sweep) -> dict[float, str]:
+    """``{Re: key}`` of the trajectories stored in the finished sweep file ``source`` whose
+    recipe equals ``sweep``'s in everything but the Reynolds numbers (InputError otherwise:
+    another mesh, frame interval, spin-up, channel or inflow would be different data)."""
+    try:
+        theirs = dict(read_metadata(source).get("sweep") or {})
+    except (OSError, ValueError) as e:
+        raise InputError("--reuse", f"{source}: not a finished sweep file ({e})") from None
+    if not theirs:
+        raise InputError("--reuse", f"{source}: not a sweep file (no 'sweep' recipe)")
+    ours = asdict(sweep)
+    res = [float(r) for r in theirs.pop("reynolds")]
+    ours.pop("reynolds")
+    theirs = json.loads(json.dumps(theirs))  # tuples as lists, as stored
+    if theirs != json.loads(json.dumps(ours)):
+        diff = sorted(k for k in ours if json.loads(json.dumps(ours[k])) != theirs.get(k))
+        raise InputError("--reuse", f"{source}: another sweep recipe (differs in {diff})",
+                         "reuse only a sweep with the same mesh, frames and channel")
+    return {r: f"{i:05d}" for i, r in enumerate(res)}
+
+
 def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, reuse: str | Path | None = None) -> dict:
     """Write the trajectories of ``sweep`` to ``path`` (HDF5 + metadata; staged as
-    ``<path>.partial`` until complete; resumes). Returns ``{"wall_s": total wall seconds,
-    "cases": [(key, Re, CFD seconds, Strouhal, lift drift), ...]}`` for the runs made now."""
+    ``<path>.partial`` until complete; resumes). ``reuse``: a finished sweep file of the
+    same recipe whose trajectories at the same Re are copied instead of computed
+    (:func:`reusable`). Returns ``{"wall_s": total wall seconds, "cases": [(key, Re, CFD
+    seconds, Strouhal, lift drift), ...]}`` for the runs made now, and ``"reused"``: the
+    number of trajectories copied."""
     if not (isinstance(workers, int) and workers >= 1):
         raise InputError("--workers", f"must be a count >= 1, got {workers}")
     recipe = dict(kind="cylinder-sweep", **asdict(sweep))
-    t0, done = time.perf_counter(), []
+    source = {} if reuse is None else reusable(reuse, sweep)
+    t0, done, copied = time.perf_counter(), [], 0
     with CylinderDatasetWriter(path, metadata_extra=dict(sweep=asdict(sweep)), recipe=recipe,
                                staged=True) as w:
         todo = [i for i in range(len(sweep.reynolds)) if not w.has(f"{i:05d}")]
+        wanted = {source[sweep.reynolds[i]]: i for i in todo if sweep.reynolds[i] in source}
+        if wanted:
+            for key, arrays, attrs in iter_cylinder_dataset(reuse):
+                if key in wanted:
+                    i = wanted[key]
+                    w.write(f"{i:05d}", arrays, dict(attrs, index=i))
+                    copied += 1
+            todo = [i for i in todo if i not in wanted.values()]
         if todo:
             pool = get_context("spawn").Pool(min(workers, len(todo)))
             try:
@@ -139,7 +177,7 @@ def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
                 pool.terminate()
                 pool.join()
         w.finalize()
-    return dict(wall_s=time.perf_counter() - t0, cases=sorted(done))
+    return dict(wall_s=time.perf_counter() - t0, cases=sorted(done), reused=copied)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -153,6 +191,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--spinup", type=float, default=20.0,
                    help="simulated time before the first stored frame, units of D / Ubar")
     p.add_argument("--workers", type=int, default=2, help="CFD processes (one core each)")
+    p.add_argument("--reuse", default=None,
+                   help="finished sweep file of the same recipe: its trajectories at the "
+                        "same Re are copied, not recomputed (the CFD is deterministic)")
     a = p.parse_args(argv)
     try:
         run = sweep_run(a.frames, a.frame_dt, a.spinup)
@@ -163,9 +204,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, stop)  # SIGINT raises KeyboardInterrupt already
     os.environ.setdefault("OMP_NUM_THREADS", "1")  # inherited by the CFD processes
-    res = generate_sweep(a.out, Sweep(tuple(a.re), run=run), workers=a.workers)
+    res = generate_sweep(a.out, Sweep(tuple(a.re), run=run), workers=a.workers,
+                         reuse=a.reuse)
     print(f"{a.out}: {len(res['cases'])} new trajectories in {res['wall_s']:.0f} s wall "
-          f"({a.workers} workers)")
+          f"({a.workers} workers), {res['reused']} copied from {a.reuse}")
     return 0
 
 
