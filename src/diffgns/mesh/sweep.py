@@ -154,7 +154,7 @@ def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
                                staged=True) as w:
         todo = [i for i in range(len(sweep.reynolds)) if not w.has(f"{i:05d}")]
         wanted = {source[sweep.reynolds[i]]: i for i in todo if sweep.reynolds[i] in source}
-        if wanted:
+        if wanted and reuse is not None:
             for key, arrays, attrs in iter_cylinder_dataset(reuse):
                 if key in wanted:
                     i = wanted[key]
