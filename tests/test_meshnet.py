@@ -287,3 +287,32 @@ def test_teacher_forced_pressure_is_the_model_pressure_of_each_given_frame():
     from diffgns.mesh.evaluate import _pressures
 
     assert _pressures._cache_size() == 1  # one program for every call on this mesh
+
+
+def test_average_of_meshgraphnets_is_the_elementwise_mean_and_refuses_other_normalisers(
+        tmp_path):
+    import dataclasses
+
+    from diffgns.cli import main
+    from diffgns.mesh.train import average_models, load_model, save_model
+
+    model, pa, info = load_model("meshnet_sweep")
+    pb = jax.tree.map(lambda x: x * 3.0 + 1.0, pa)
+    save_model(tmp_path / "a", model, pa, info["padding"], {"frame_dt": info["frame_dt"]})
+    noisier = MeshNet(dataclasses.replace(model.config, noise_std=0.005), model.stats,
+                      model.frame_dt)
+    save_model(tmp_path / "b", noisier, pb, info["padding"], {"frame_dt": info["frame_dt"]})
+    assert main(["average", str(tmp_path / "a"), str(tmp_path / "b"),
+                 "--out", str(tmp_path / "ab")]) == 0
+    m, p, got = load_model(tmp_path / "ab")
+    assert m.config == model.config and got["averaged_from"][1].endswith("b")
+    assert got["frame_dt"] == info["frame_dt"]
+    for x, a, b in zip(jax.tree.leaves(p), jax.tree.leaves(pa), jax.tree.leaves(pb)):
+        np.testing.assert_allclose(np.asarray(x), (np.asarray(a) + np.asarray(b)) / 2,
+                                   rtol=1e-6, atol=1e-6)
+    other = MeshNet(model.config, model.stats.replace(edge_scale=1.0), model.frame_dt)
+    save_model(tmp_path / "c", other, pa, info["padding"], {})
+    with pytest.raises(ValueError, match="different normaliser"):
+        average_models([tmp_path / "a", tmp_path / "c"], tmp_path / "x")
+    assert main(["average", str(tmp_path / "a"), str(tmp_path / "c"),
+                 "--out", str(tmp_path / "x")]) == 2  # a clear error, no traceback

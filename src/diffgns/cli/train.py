@@ -124,8 +124,13 @@ def _train_mesh(args) -> int:
 
 
 def _average(args) -> int:
-    from diffgns.graph.train_loop import average_models
+    from diffgns.graph import train_loop
+    from diffgns.mesh import train as mesh_train
+    from diffgns.models import model_path
 
+    first = model_path(args.models[0])
+    mesh = any((f / "model.json").is_file() for f in (first, first / "model"))
+    average_models = mesh_train.average_models if mesh else train_loop.average_models
     try:
         out = average_models(args.models, args.out)
     except ValueError as e:
@@ -238,8 +243,8 @@ def register(sub) -> None:
     add_distributed_arguments(t)
     t.set_defaults(func=_train)
 
-    a = sub.add_parser("average", help="uniform weight average of GNS models fine-tuned from "
-                       "one parent (same network and normaliser)")
+    a = sub.add_parser("average", help="uniform weight average of GNS or MeshGraphNet models "
+                       "fine-tuned from one parent (same network and normaliser)")
     a.add_argument("models", nargs="+", help="model folders")
     a.add_argument("--out", required=True, help="folder of the averaged model")
     a.set_defaults(func=_average)

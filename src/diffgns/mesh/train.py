@@ -159,6 +159,31 @@ def load_model(path: str | Path):
     return model, params, info
 
 
+def average_models(paths, out: str | Path) -> Path:
+    """Write to ``out`` the uniform average of the parameters of MeshGraphNet folders
+    ``paths`` (a "model soup" of fine-tunes of one parent). Their network configuration
+    (all but the training noise), padding and normalisers must be identical (ValueError
+    naming the difference); the first model's ``model.json`` is kept, with
+    ``averaged_from``. Returns ``out``."""
+    if len(paths) < 2:
+        raise ValueError("averaging needs at least two models")
+    models = [load_model(p) for p in paths]
+    m0, _, info0 = models[0]
+    net = lambda info: {k: v for k, v in info["config"].items() if k != "noise_std"}  # noqa: E731
+    for p, (_, _, info) in zip(paths[1:], models[1:]):
+        for what, a, b in (("configuration", net(info0), net(info)),
+                           ("padding", info0["padding"], info["padding"]),
+                           ("normaliser", info0["stats"], info["stats"])):
+            if a != b:
+                raise ValueError(f"cannot average {p} with {paths[0]}: different {what} "
+                                 f"(first, this) = ({a}, {b})")
+    avg = jax.tree.map(lambda *a: sum(a) / len(a), *[m[1] for m in models])
+    keep = {k: v for k, v in info0.items() if k not in ("kind", "config", "padding", "stats")}
+    save_model(Path(out), m0, avg, info0["padding"],
+               dict(keep, averaged_from=[str(p) for p in paths]))
+    return Path(out)
+
+
 def _pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
     """``v`` (N, 2) advanced ``n_push`` (traced int) model frames with stopped gradients;
     non-predicted nodes keep their values in ``v`` (steady boundary conditions)."""
