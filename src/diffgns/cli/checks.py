@@ -248,6 +248,16 @@ def model_folder(name: str, field: str = "--model"):
                          "or a shipped model name (see models/)") from None
 
 
+def is_mesh_model(folder) -> bool:
+    """Whether the model folder ``folder`` (from :func:`model_folder`) holds a MeshGraphNet
+    (its ``model.json`` says ``"kind": "meshgraphnet"``; a particle GNS has ``config.json``,
+    a message network a ``model.json`` of another kind)."""
+    import json
+
+    meta = Path(folder) / "model.json"
+    return meta.is_file() and json.loads(meta.read_text()).get("kind") == "meshgraphnet"
+
+
 def squares_kw(args) -> dict:
     """Scene keywords of a squares recipe from the ``dataset`` arguments."""
     kw = dict(dx=args.dx, size=args.size,

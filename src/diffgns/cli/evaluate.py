@@ -5,12 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from diffgns.cli.checks import count, finite, model_folder
-
-
-def _is_mesh_model(path) -> bool:
-    meta = Path(path) / "model.json"
-    return meta.exists() and json.loads(meta.read_text()).get("kind") == "meshgraphnet"
+from diffgns.cli.checks import count, finite, is_mesh_model, model_folder
 
 
 def _rollout(args) -> int:
@@ -18,7 +13,7 @@ def _rollout(args) -> int:
 
     check_input_file(args.data, "--data", metadata=True)
     args.model = model_folder(args.model)
-    if _is_mesh_model(args.model):
+    if is_mesh_model(args.model):
         return _rollout_mesh(args)
     from diffgns.clamp import clamp_warning
     from diffgns.errors import InputError

@@ -124,12 +124,11 @@ def _train_mesh(args) -> int:
 
 
 def _average(args) -> int:
+    from diffgns.cli.checks import is_mesh_model, model_folder
     from diffgns.graph import train_loop
     from diffgns.mesh import train as mesh_train
-    from diffgns.models import model_path
 
-    first = model_path(args.models[0])
-    mesh = any((f / "model.json").is_file() for f in (first, first / "model"))
+    mesh = is_mesh_model(model_folder(args.models[0], "models"))
     average_models = mesh_train.average_models if mesh else train_loop.average_models
     try:
         out = average_models(args.models, args.out)

@@ -126,6 +126,12 @@ class TrainConfig:
             raise ValueError(f"steps_per_call must be >= 1, got {self.steps_per_call}")
 
 
+def average_params(trees: Sequence[Any]) -> Any:
+    """Uniform average of parameter pytrees of one structure (a "model soup" of fine-tunes of
+    one parent; every network's ``diffgns average`` checks compatibility, then calls this)."""
+    return jax.tree.map(lambda *a: sum(a) / len(a), *trees)
+
+
 def learning_rate(cfg: TrainConfig) -> optax.Schedule:
     """step -> learning rate: ``lr * r^step`` with ``r = (lr_final / lr)^(1 / lr_decay_steps)``,
     held at ``lr_final`` from ``lr_decay_steps`` on."""

@@ -32,7 +32,14 @@ from diffgns.graph.data import (
 )
 from diffgns.graph.evaluate import evaluate
 from diffgns.graph.features import ParticleStats
-from diffgns.graph.fit import TrainConfig, TrainingInterrupted, fit, has_checkpoint, step_rng
+from diffgns.graph.fit import (
+    TrainConfig,
+    TrainingInterrupted,
+    average_params,
+    fit,
+    has_checkpoint,
+    step_rng,
+)
 from diffgns.graph.geometry import obstacle_array
 from diffgns.graph.gns import GNS, GNSConfig
 from diffgns.graph.sampling import FamilyWindowSampler
@@ -101,7 +108,7 @@ def average_models(paths, out: str | Path) -> Path:
                              f"(first, this) = {diff}")
         if info["normalizer"] != info0["normalizer"]:
             raise ValueError(f"cannot average {p} with {paths[0]}: different normaliser")
-    avg = jax.tree.map(lambda *a: sum(a) / len(a), *[m[1] for m in models])
+    avg = average_params([m[1] for m in models])
     info = dict(info0, averaged_from=[str(p) for p in paths])
     save_model(Path(out), g0, avg, info)
     return Path(out)

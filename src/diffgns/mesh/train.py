@@ -27,7 +27,7 @@ import optax
 from flax import serialization
 
 from diffgns.graph.features import Normalizer, combine_std
-from diffgns.graph.fit import TrainConfig, fit, make_optimizer, step_rng
+from diffgns.graph.fit import TrainConfig, average_params, fit, make_optimizer, step_rng
 from diffgns.io.dataset import read_metadata
 from diffgns.mesh.dataset import iter_cylinder_dataset
 from diffgns.mesh.meshnet import (
@@ -177,7 +177,7 @@ def average_models(paths, out: str | Path) -> Path:
             if a != b:
                 raise ValueError(f"cannot average {p} with {paths[0]}: different {what} "
                                  f"(first, this) = ({a}, {b})")
-    avg = jax.tree.map(lambda *a: sum(a) / len(a), *[m[1] for m in models])
+    avg = average_params([m[1] for m in models])
     keep = {k: v for k, v in info0.items() if k not in ("kind", "config", "padding", "stats")}
     save_model(Path(out), m0, avg, info0["padding"],
                dict(keep, averaged_from=[str(p) for p in paths]))
