@@ -272,3 +272,54 @@ def test_staged_training_starts_from_a_model_and_refuses_bad_options(tmp_path):
     with pytest.raises(InputError, match="near-wall-weight"):
         main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
               "--stages", "2:0.0:1", "--near-wall-weight", "0"])
+
+
+def test_oversampling_draws_the_high_reynolds_trajectories_by_their_factor(tmp_path):
+    """--oversample-re RE:FACTOR: trajectory frequencies follow the weights (4 trajectories,
+    factor 3 on the top two: 1/8, 1/8, 3/8, 3/8); no option keeps the uniform draws of the
+    earlier runs bit for bit (their exact resume); a run records its weights and trains on
+    them (an overwhelming factor gives other parameters than uniform draws)."""
+    from diffgns.graph.fit import TrainConfig
+    from diffgns.mesh.meshnet import MeshNetConfig
+    from diffgns.mesh.stages import (
+        draw_windows,
+        main,
+        parse_oversample,
+        train_staged,
+        trajectory_weights,
+    )
+    from diffgns.mesh.train import load_model
+
+    assert parse_oversample(" 200:3") == (200.0, 3.0)
+    for bad in ("200", "200:3:1", "x:3", "200:0.5", "-1:2", "200:nan"):
+        with pytest.raises(InputError, match="oversample-re"):
+            parse_oversample(bad)
+    w = trajectory_weights([75, 150, 200, 300], 200, 3)
+    np.testing.assert_allclose(w, [1 / 8, 1 / 8, 3 / 8, 3 / 8])
+    with pytest.raises(InputError, match="no trajectory has Re >= 400"):
+        trajectory_weights([75, 300], 400, 2)
+    ti, win = draw_windows(np.random.default_rng(1), 4, 20, 3, 40000, w)
+    np.testing.assert_allclose(np.bincount(ti, minlength=4) / 40000, w, atol=0.01)
+    assert win.shape == (40000, 4) and win.min() == 0 and win.max() == 19
+    np.testing.assert_array_equal(win[:, 1:] - win[:, :-1], 1)
+    rng_a, rng_b = np.random.default_rng([0, 7]), np.random.default_rng([0, 7])
+    ti, win = draw_windows(rng_a, 4, 20, 3, 5)
+    np.testing.assert_array_equal(ti, rng_b.integers(0, 4, 5))
+    np.testing.assert_array_equal(win[:, 0], rng_b.integers(0, 17, 5))
+
+    _synthetic_dataset(tmp_path / "d.h5")  # Re 100 and 200
+    cfg = MeshNetConfig(latent=8, mp_steps=1)
+    tc = TrainConfig(steps=3, batch_size=1, lr=1e-2, lr_final=1e-2, log_every=1,
+                     checkpoint_every=3)
+    runs = {}
+    for name, over in [("u", None), ("o", (150.0, 1e9))]:
+        train_staged(tmp_path / "d.h5", tmp_path / name, cfg, tc, parse_stages("3:0.0:1"),
+                     progress=False, oversample_re=over)
+        runs[name] = load_model(tmp_path / name / "model")
+    assert runs["u"][2]["trajectory_weights"] is None
+    np.testing.assert_allclose(runs["o"][2]["trajectory_weights"], [0, 1], atol=1e-8)
+    leaves = lambda r: jax.tree_util.tree_leaves(r[1])
+    assert any(not np.array_equal(a, b) for a, b in zip(leaves(runs["u"]), leaves(runs["o"])))
+    with pytest.raises(InputError, match="no trajectory has Re >= 500"):
+        main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
+              "--stages", "2:0.0:1", "--oversample-re", "500:2"])

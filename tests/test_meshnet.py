@@ -124,7 +124,7 @@ def _synthetic_dataset(path, n_traj=2, frames=12):
                           on_cylinder=np.zeros(len(pos), bool), velocity=vel.astype(np.float32),
                           pressure=np.sin(phase).astype(np.float32), time=t[:, 0],
                           cd=np.zeros(frames), cl=np.zeros(frames))
-            w.write(f"{k:05d}", arrays, dict(frame_dt=0.01, reynolds=100.0, u_max=1.5,
+            w.write(f"{k:05d}", arrays, dict(frame_dt=0.01, reynolds=100.0 * (1 + k), u_max=1.5,
                                               nu=NU * (1 + k), radius=0.05,
                                               center=[0.2, 0.2]))
         w.finalize()

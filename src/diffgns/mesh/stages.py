@@ -107,6 +107,45 @@ def stage_at(stages: Sequence[Stage], step: int) -> Stage:
     return stages[-1]
 
 
+def parse_oversample(text: str) -> tuple[float, float]:
+    """``"RE:FACTOR"``: trajectories at Reynolds number >= RE are drawn FACTOR (>= 1) times
+    as often as the others."""
+    f = text.strip().split(":")
+    try:
+        re_min, factor = (float(x) for x in f) if len(f) == 2 else (None, None)
+    except ValueError:
+        re_min = None
+    if re_min is None:
+        raise InputError("--oversample-re", f"{text!r} is not RE:FACTOR", "e.g. 200:3")
+    if not (np.isfinite(re_min) and re_min > 0 and np.isfinite(factor) and factor >= 1):
+        raise InputError("--oversample-re", f"{text!r}: RE must be > 0 and FACTOR >= 1")
+    return re_min, factor
+
+
+def trajectory_weights(reynolds: Sequence[float], re_min: float, factor: float) -> np.ndarray:
+    """Sampling probability of each trajectory (sums to 1): ``factor`` for ``Re >= re_min``,
+    1 otherwise. Refused if no trajectory reaches ``re_min`` (the option would do nothing)."""
+    re = np.asarray(reynolds, float)
+    if not (re >= re_min).any():
+        raise InputError("--oversample-re", f"no trajectory has Re >= {re_min:g} (the data "
+                         f"span Re {re.min():g}-{re.max():g})")
+    w = np.where(re >= re_min, factor, 1.0)
+    return w / w.sum()
+
+
+def draw_windows(rng: np.random.Generator, n_traj: int, n_frames: int, unroll: int,
+                 batch: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(trajectory index (batch,), window frame indices (batch, unroll + 1)) of one step:
+    trajectories uniform, or with probabilities ``weights`` (n_traj,); window starts uniform
+    in ``[0, n_frames - unroll)``."""
+    if weights is None:
+        ti = rng.integers(0, n_traj, batch)
+    else:
+        ti = rng.choice(n_traj, batch, p=weights)
+    fi = rng.integers(0, n_frames - unroll, batch)
+    return ti, fi[:, None] + np.arange(unroll + 1)
+
+
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
                   key: jax.Array, noise_std, checkpoint: bool = True,
                   near_wall_weight: float = 1.0) -> jax.Array:
@@ -154,13 +193,16 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
 
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                  stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
-                 init_from=None) -> tuple[MeshNet, dict]:
+                 init_from=None, oversample_re: tuple[float, float] | None = None
+                 ) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
     and ``out_dir/model``. ``near_wall_weight``: see :func:`unrolled_loss`. ``init_from``: a
     model folder of the same configuration to start from (its params and normalisers,
     :func:`diffgns.mesh.train.fine_tune_start`; a fresh optimiser, steps counted from 0; a
-    resumed run keeps that model's normalisers). Returns (model, params)."""
+    resumed run keeps that model's normalisers). ``oversample_re``: (RE, FACTOR), draw the
+    trajectories at Re >= RE FACTOR times as often (:func:`trajectory_weights`; None =
+    uniform). Returns (model, params)."""
     if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
         raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
     out = Path(out_dir)
@@ -169,6 +211,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     vel, pres = padded_fields(trajs, padding[0])
     T, F = vel.shape[:2]
     _check(stages, tcfg, F)
+    weights = None if oversample_re is None else trajectory_weights(
+        [float(t["attrs"]["reynolds"]) for t in trajs], *oversample_re)
     model = MeshNet(cfg, stats_from_metadata(read_metadata(train_path), trajs, 0.0,
                                              cfg.viscosity_feature),
                     frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
@@ -202,9 +246,7 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
         if k not in updates:
             updates[k] = update_fn(k)
         rng, key = step_rng(tcfg.seed, step)
-        ti = rng.integers(0, T, tcfg.batch_size)
-        fi = rng.integers(0, F - k, tcfg.batch_size)
-        win = fi[:, None] + np.arange(k + 1)
+        ti, win = draw_windows(rng, T, F, k, tcfg.batch_size, weights)
         g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
         params, opt_state, loss = updates[k](
             params, opt_state, g, vel[ti[:, None], win], pres[ti[:, None], win[:, 1:]], key,
@@ -215,7 +257,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                 stages=[dataclasses.asdict(s) for s in stages],
                 frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages",
                 near_wall_weight=near_wall_weight,
-                init_from=None if init_from is None else str(init_from))
+                init_from=None if init_from is None else str(init_from),
+                trajectory_weights=None if weights is None else weights.tolist())
     opt_state = opt.init(params)
     try:
         params, _, step = fit(one_step, params, opt_state, tcfg, out, info,
@@ -248,6 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="loss weight of the first fluid ring off the walls (default 1)")
     p.add_argument("--init-from", default=None,
                    help="model folder of the same configuration to start from")
+    p.add_argument("--oversample-re", default=None, metavar="RE:FACTOR",
+                   help="draw trajectories at Re >= RE FACTOR times as often (default: "
+                   "uniform)")
     a = p.parse_args(argv)
     check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
@@ -263,7 +309,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        checkpoint_every=a.checkpoint_every)
     cfg = MeshNetConfig(latent=a.latent, mp_steps=a.mp_steps, noise_std=stages[0].noise_std)
     train_staged(a.data, a.out, cfg, tcfg, stages, near_wall_weight=a.near_wall_weight,
-                 init_from=a.init_from)
+                 init_from=a.init_from,
+                 oversample_re=None if a.oversample_re is None else parse_oversample(
+                     a.oversample_re))
     print(f"model written to {a.out}/model")
     return 0
 
