@@ -323,3 +323,35 @@ def test_oversampling_draws_the_high_reynolds_trajectories_by_their_factor(tmp_p
     with pytest.raises(InputError, match="no trajectory has Re >= 500"):
         main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
               "--stages", "2:0.0:1", "--oversample-re", "500:2"])
+
+
+def test_push_forward_starts_the_loss_from_the_models_own_rollout_without_its_gradient():
+    """push = P: the loss equals the P = 0 loss on a window whose first frame is the model's
+    own P-frame rollout (computed here by hand), its gradient equals that loss's gradient
+    with the rolled frame held constant, and the push changes the loss (it is not the loss of
+    the data window from frame P)."""
+    from diffgns.mesh.stages import unrolled_loss
+
+    K, P = 2, 3
+    model, params, g, v, p = _setup(k=K + P, seed=4)
+    key = jax.random.PRNGKey(0)
+
+    def by_hand(params):
+        frozen = jax.lax.stop_gradient(params)
+        vp = v[0]
+        for _ in range(P):
+            vp = model.advance(frozen, g, vp, v[0])[0]
+        return unrolled_loss(model, params, g, jnp.concatenate([vp[None], v[P + 1:]]), p[P:],
+                             key, 0.0)
+
+    pushed = lambda params: unrolled_loss(model, params, g, v, p, key, 0.0, push=P)
+    assert float(pushed(params)) == pytest.approx(float(by_hand(params)), rel=1e-5)
+    data_only = unrolled_loss(model, params, g, v[P:], p[P:], key, 0.0)
+    assert abs(float(pushed(params)) - float(data_only)) > 1e-3 * float(data_only)
+    ga, gb = jax.grad(pushed)(params), jax.grad(by_hand)(params)
+    for a, b in zip(jax.tree_util.tree_leaves(ga), jax.tree_util.tree_leaves(gb)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4,
+                                   atol=1e-5 * float(np.abs(np.asarray(b)).max()))
+    assert parse_stages("10:0.01:4:16") == (Stage(10, 0.01, 4, 16),)
+    with pytest.raises(InputError, match="push"):
+        parse_stages("10:0.01:4:-1")

@@ -15,13 +15,16 @@ Issue 23's training levers, on the shared optimiser loop :func:`diffgns.graph.fi
   with every frame under ``jax.checkpoint``, :func:`diffgns.interface.scan_frames`, so
   memory is one frame's activations plus ``K`` carries). ``K = 1`` is exactly the one-step
   loss of :func:`diffgns.mesh.train._loss` (target against the noisy input);
+* **push-forward** (``push = P`` in a stage): the model first rolls ``P`` frames from the
+  noisy data frame without gradients, and the ``K``-frame loss starts from that state of its
+  own, so the network learns to steer its own accumulated errors back to the data;
 * on SIGTERM or SIGINT the checkpoint is written (by :func:`~diffgns.graph.fit.fit`), then
   ``out/model`` from it, and the process exits with 143 / 130; the same command resumes;
 * the normalisers hold the data statistics without the noise (unlike
   :func:`diffgns.mesh.train.train`), so changing the noise between stages does not change
   what the network sees.
 
-``python -m diffgns.mesh.stages --data D --out RUN --stages 4000:0.005:1,8000:0.002:4``
+``python -m diffgns.mesh.stages --data D --out RUN --stages 4000:0.005:1,8000:0.002:4:16``
 trains (or resumes) a run; ``make meshnet-train`` runs the configuration of the shipped
 checkpoint.
 """
@@ -63,12 +66,14 @@ from diffgns.mesh.train import (
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
-    """Training steps ``[previous until, until)``: input noise ``noise_std`` (m/s, >= 0) and
-    ``unroll`` frames per sample (>= 1; 1 = one-step loss)."""
+    """Training steps ``[previous until, until)``: input noise ``noise_std`` (m/s, >= 0),
+    ``unroll`` frames per sample (>= 1; 1 = one-step loss) and ``push`` frames the model
+    first rolls without gradients (>= 0, :func:`unrolled_loss`)."""
 
     until: int
     noise_std: float
     unroll: int = 1
+    push: int = 0
 
     def __post_init__(self):
         if not (isinstance(self.until, int) and self.until >= 1):
@@ -77,22 +82,26 @@ class Stage:
             raise InputError("--stages", f"noise {self.noise_std!r} must be >= 0 m/s")
         if not (isinstance(self.unroll, int) and self.unroll >= 1):
             raise InputError("--stages", f"unroll {self.unroll!r} must be a count >= 1")
+        if not (isinstance(self.push, int) and self.push >= 0):
+            raise InputError("--stages", f"push {self.push!r} must be a count >= 0")
 
 
 def parse_stages(text: str) -> tuple[Stage, ...]:
-    """``"UNTIL:NOISE:K,UNTIL:NOISE:K,..."`` (K optional, default 1), ends increasing."""
+    """``"UNTIL:NOISE:K:P,..."`` (K optional, default 1; P optional, default 0), ends
+    increasing."""
     out = []
     for part in text.split(","):
         f = part.strip().split(":")
-        if len(f) not in (2, 3):
-            raise InputError("--stages", f"{part!r} is not UNTIL:NOISE[:K]",
-                             "e.g. 4000:0.005:1,8000:0.0025:4")
+        if len(f) not in (2, 3, 4):
+            raise InputError("--stages", f"{part!r} is not UNTIL:NOISE[:K[:P]]",
+                             "e.g. 4000:0.005:1,8000:0.0025:4,9000:0.0025:4:16")
         try:
-            until, noise, k = int(f[0]), float(f[1]), int(f[2]) if len(f) == 3 else 1
+            until, noise = int(f[0]), float(f[1])
+            k, push = (int(x) for x in f[2:] + ["1", "0"][len(f) - 2:])
         except ValueError:
-            raise InputError("--stages", f"{part!r}: UNTIL and K must be integers, NOISE a "
-                             "number") from None
-        out.append(Stage(until, noise, k))
+            raise InputError("--stages", f"{part!r}: UNTIL, K and P must be integers, NOISE "
+                             "a number") from None
+        out.append(Stage(until, noise, k, push))
     ends = [s.until for s in out]
     if ends != sorted(set(ends)):
         raise InputError("--stages", f"stage ends {ends} must increase")
@@ -148,16 +157,22 @@ def draw_windows(rng: np.random.Generator, n_traj: int, n_frames: int, unroll: i
 
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
                   key: jax.Array, noise_std, checkpoint: bool = True,
-                  near_wall_weight: float = 1.0) -> jax.Array:
+                  near_wall_weight: float = 1.0, push: int = 0) -> jax.Array:
     """Weighted mean normalised error of a ``K``-frame model rollout against the data.
 
+    With ``push = P > 0`` the model first rolls ``P`` frames from the noisy frame ``t``
+    without gradients (the push-forward trick: the ``K`` frames of the loss then start from
+    the model's own drifted state, ``v^model_{t+P}``, and learn to steer it back to the data
+    ``t+P+1..t+P+K``).
+
     Args:
-        v_win: (K + 1, N, 2) data velocities of frames t..t+K, m/s.
-        p_win: (K, N) data pressures of frames t+1..t+K, m^2/s^2.
+        v_win: (P + K + 1, N, 2) data velocities of frames t..t+P+K, m/s.
+        p_win: (P + K, N) data pressures of frames t+1..t+P+K, m^2/s^2.
         key: noise key; ``noise_std`` (m/s, scalar, may be traced) on fluid nodes of frame t.
         checkpoint: every frame under ``jax.checkpoint`` (same values, less memory).
         near_wall_weight: static weight of the first fluid ring off the walls in the node
             mean (:func:`~diffgns.mesh.meshnet.loss_weights`; 1 = every node alike).
+        push: static count ``P >= 0`` of gradient-free frames before the loss.
     Returns:
         scalar loss (dimensionless).
     """
@@ -165,6 +180,10 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
     noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
     v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     s_dv = model.stats.target.std[:2]
+    if push:
+        frozen = jax.lax.stop_gradient(params)
+        v_in, _ = jax.lax.scan(lambda v, _: (model.advance(frozen, graph, v, v0)[0], None),
+                               v_in, None, length=push)
 
     def body(v, data):
         v_next, p_next = data
@@ -174,7 +193,7 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         loss = node_loss(graph, err_v, err_p, near_wall_weight)
         return new_v, loss
 
-    _, losses = scan_frames(body, v_in, (v_win[1:], p_win),
+    _, losses = scan_frames(body, v_in, (v_win[1 + push:], p_win[push:]),
                             checkpoint_block=1 if checkpoint else None)
     return losses.mean()
 
@@ -185,10 +204,10 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
     if stages[-1].until != tcfg.steps:
         raise InputError("--stages", f"the last stage ends at {stages[-1].until}, the run at "
                          f"{tcfg.steps} steps", "make them equal")
-    k = max(s.unroll for s in stages)
+    k = max(s.unroll + s.push for s in stages)
     if k > n_frames - 1:
-        raise InputError("--stages", f"unroll {k} needs {k + 1} frames; the trajectories have "
-                         f"{n_frames}")
+        raise InputError("--stages", f"push + unroll {k} needs {k + 1} frames; the "
+                         f"trajectories have {n_frames}")
 
 
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
@@ -226,11 +245,12 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
         model = MeshNet(cfg, stats, frame_dt=model.frame_dt)
     updates: dict = {}
 
-    def update_fn(k: int):
+    def update_fn(push: int):
         def batch_loss(params, g, v, p, key, noise):
             keys = jax.random.split(key, v.shape[0])
             f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise,
-                                                     near_wall_weight=near_wall_weight)
+                                                     near_wall_weight=near_wall_weight,
+                                                     push=push)
             return jax.vmap(f)(g, v, p, keys).mean()
 
         @jax.jit
@@ -243,12 +263,12 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     def one_step(params, opt_state, step):
         st = stage_at(stages, step)
         k = st.unroll
-        if k not in updates:
-            updates[k] = update_fn(k)
+        if (k, st.push) not in updates:
+            updates[k, st.push] = update_fn(st.push)
         rng, key = step_rng(tcfg.seed, step)
-        ti, win = draw_windows(rng, T, F, k, tcfg.batch_size, weights)
+        ti, win = draw_windows(rng, T, F, st.push + k, tcfg.batch_size, weights)
         g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
-        params, opt_state, loss = updates[k](
+        params, opt_state, loss = updates[k, st.push](
             params, opt_state, g, vel[ti[:, None], win], pres[ti[:, None], win[:, 1:]], key,
             jnp.asarray(st.noise_std, vel.dtype))
         return params, opt_state, (loss, st.noise_std, k)
@@ -277,8 +297,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 description="train a MeshGraphNet in stages (resumable)")
     p.add_argument("--data", required=True, help="cylinder dataset (.h5 with metadata)")
     p.add_argument("--out", required=True, help="run folder (resumed if it has a checkpoint)")
-    p.add_argument("--stages", required=True, help="UNTIL:NOISE[:K],...: steps, noise (m/s), "
-                   "unroll frames; the last UNTIL is the run's length")
+    p.add_argument("--stages", required=True, help="UNTIL:NOISE[:K[:P]],...: steps, noise "
+                   "(m/s), unroll frames, gradient-free push frames before them; the last "
+                   "UNTIL is the run's length")
     p.add_argument("--latent", type=int, default=64)
     p.add_argument("--mp-steps", type=int, default=6)
     p.add_argument("--batch-size", type=int, default=2)
