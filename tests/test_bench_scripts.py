@@ -16,6 +16,7 @@ import granular_truth_spread as gts  # noqa: E402
 import hybrid_families as hf  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
 import meshnet_accuracy_speed as mas  # noqa: E402
+import meshnet_runaway as mr  # noqa: E402
 
 from diffgns.hybrid.simulator import Schedule  # noqa: E402
 from diffgns.timing import Interleaved, Sample  # noqa: E402
@@ -152,3 +153,23 @@ def test_truth_spread_dt_perturbation_is_a_shorter_substep_not_another_scene():
 def test_heldout_timing_refuses_a_scene_that_does_not_redraw_the_stored_one():
     with pytest.raises(SystemExit, match="redraws .* particles, the data has 7"):
         gh.speed_of_case(None, None, None, ("columns", 3, 7, {}), 1)
+
+
+def test_meshnet_drift_windows_and_the_worst_mean_flow_node(tmp_path):
+    """The drift of a rollout equal to the data but for one node pushed 0.3 m/s in its last
+    window: that node is the worst, by 0.3 m/s; the windows tile the rollout; the forces are
+    the data's own (this synthetic mesh has no cylinder: zero lift)."""
+    import numpy as np
+
+    from diffgns.mesh.train import load_cylinder
+    from test_meshnet import _synthetic_dataset
+
+    _synthetic_dataset(tmp_path / "d.h5", n_traj=1, frames=21)
+    traj = load_cylinder(tmp_path / "d.h5")[0]
+    vel = traj["velocity"].copy()
+    vel[-5:, 7] += np.array([0.3, 0.0], np.float32)
+    d = mr.drift(traj, vel, traj["pressure"][1:], window=5)
+    assert d["window_start"] == [0, 5, 10, 15] and len(d["lift_pp"]) == 4
+    assert d["worst_mean_node_m"] == traj["mesh_pos"][7].tolist()
+    assert d["worst_mean_error_m_s"] == pytest.approx(0.3, rel=1e-5)
+    assert d["drag_mean"] == pytest.approx([d["cfd_drag_mean"]] * 4, abs=1e-6)
