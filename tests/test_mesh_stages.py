@@ -355,3 +355,31 @@ def test_push_forward_starts_the_loss_from_the_models_own_rollout_without_its_gr
     assert parse_stages("10:0.01:4:16") == (Stage(10, 0.01, 4, 16),)
     with pytest.raises(InputError, match="push"):
         parse_stages("10:0.01:4:-1")
+
+
+def test_near_wall_noise_scales_the_input_noise_on_the_first_ring_only():
+    """near_wall_noise = F: the loss equals the noise-free loss from a frame perturbed by hand
+    with the same draws, F times larger on the first fluid ring off the walls, none on the
+    held nodes; the option is refused below 0."""
+    from diffgns.mesh.meshnet import FLUID, near_wall
+    from diffgns.mesh.stages import train_staged, unrolled_loss
+
+    pos, cells, types = _grid_mesh(6, 6)  # interior rows 2-3 are off the walls
+    g = pad_mesh(pos, cells, types, 48, 256, NU)
+    model = _model()
+    params = model.init_network(jax.random.PRNGKey(5), g)
+    rng = np.random.default_rng(5)
+    v = jnp.asarray(rng.normal(size=(3, 48, 2)), jnp.float32)
+    p = jnp.asarray(rng.normal(size=(2, 48)), jnp.float32)
+    key, sigma, F = jax.random.PRNGKey(9), 0.05, 7.0
+    ring, fluid = near_wall(g), g.node_type == FLUID
+    assert 0 < int((ring & fluid).sum()) < int(fluid.sum())
+    draw = sigma * jax.random.normal(key, v[0].shape, v.dtype)
+    noise = draw * jnp.where(ring, F, 1.0)[:, None] * fluid[:, None]
+    by_hand = unrolled_loss(model, params, g, v.at[0].add(noise), p, key, 0.0)
+    scaled = unrolled_loss(model, params, g, v, p, key, sigma, near_wall_noise=F)
+    plain = unrolled_loss(model, params, g, v, p, key, sigma)
+    assert float(scaled) == pytest.approx(float(by_hand), rel=1e-5)
+    assert abs(float(scaled) - float(plain)) > 1e-4 * float(plain)
+    with pytest.raises(InputError, match="near-wall-noise"):
+        train_staged("missing.h5", "x", None, None, (), near_wall_noise=-1.0)

@@ -52,7 +52,14 @@ from diffgns.graph.fit import (
 from diffgns.interface import scan_frames
 from diffgns.io.dataset import read_metadata
 from diffgns.io.files import check_input_file
-from diffgns.mesh.meshnet import FLUID, MeshGraph, MeshNet, MeshNetConfig, node_loss
+from diffgns.mesh.meshnet import (
+    FLUID,
+    MeshGraph,
+    MeshNet,
+    MeshNetConfig,
+    near_wall,
+    node_loss,
+)
 from diffgns.mesh.train import (
     fine_tune_start,
     graphs_of,
@@ -157,7 +164,8 @@ def draw_windows(rng: np.random.Generator, n_traj: int, n_frames: int, unroll: i
 
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
                   key: jax.Array, noise_std, checkpoint: bool = True,
-                  near_wall_weight: float = 1.0, push: int = 0) -> jax.Array:
+                  near_wall_weight: float = 1.0, push: int = 0,
+                  near_wall_noise: float = 1.0) -> jax.Array:
     """Weighted mean normalised error of a ``K``-frame model rollout against the data.
 
     With ``push = P > 0`` the model first rolls ``P`` frames from the noisy frame ``t``
@@ -173,11 +181,15 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         near_wall_weight: static weight of the first fluid ring off the walls in the node
             mean (:func:`~diffgns.mesh.meshnet.loss_weights`; 1 = every node alike).
         push: static count ``P >= 0`` of gradient-free frames before the loss.
+        near_wall_noise: static factor on the noise std of the first fluid ring off the
+            walls (:func:`~diffgns.mesh.meshnet.near_wall`; 1 = the same noise everywhere).
     Returns:
         scalar loss (dimensionless).
     """
     v0 = v_win[0]
     noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
+    if near_wall_noise != 1.0:
+        noise = noise * jnp.where(near_wall(graph), near_wall_noise, 1.0)[:, None]
     v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     s_dv = model.stats.target.std[:2]
     if push:
@@ -212,11 +224,13 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
 
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                  stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
-                 init_from=None, oversample_re: tuple[float, float] | None = None
+                 init_from=None, near_wall_noise: float = 1.0,
+                 oversample_re: tuple[float, float] | None = None
                  ) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
-    and ``out_dir/model``. ``near_wall_weight``: see :func:`unrolled_loss`. ``init_from``: a
+    and ``out_dir/model``. ``near_wall_weight``, ``near_wall_noise``: see
+    :func:`unrolled_loss`. ``init_from``: a
     model folder of the same configuration to start from (its params and normalisers,
     :func:`diffgns.mesh.train.fine_tune_start`; a fresh optimiser, steps counted from 0; a
     resumed run keeps that model's normalisers). ``oversample_re``: (RE, FACTOR), draw the
@@ -224,6 +238,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     uniform). Returns (model, params)."""
     if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
         raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
+    if not (np.isfinite(near_wall_noise) and near_wall_noise >= 0):
+        raise InputError("--near-wall-noise", f"must be a factor >= 0, got {near_wall_noise}")
     out = Path(out_dir)
     trajs = load_cylinder(train_path)
     padding = padding_for(trajs)
@@ -250,7 +266,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
             keys = jax.random.split(key, v.shape[0])
             f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise,
                                                      near_wall_weight=near_wall_weight,
-                                                     push=push)
+                                                     push=push,
+                                                     near_wall_noise=near_wall_noise)
             return jax.vmap(f)(g, v, p, keys).mean()
 
         @jax.jit
@@ -276,7 +293,7 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     info = dict(train=dataclasses.asdict(tcfg), data=str(train_path), n_trajectories=T,
                 stages=[dataclasses.asdict(s) for s in stages],
                 frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages",
-                near_wall_weight=near_wall_weight,
+                near_wall_weight=near_wall_weight, near_wall_noise=near_wall_noise,
                 init_from=None if init_from is None else str(init_from),
                 trajectory_weights=None if weights is None else weights.tolist())
     opt_state = opt.init(params)
@@ -310,6 +327,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--checkpoint-every", type=int, default=250)
     p.add_argument("--near-wall-weight", type=float, default=1.0,
                    help="loss weight of the first fluid ring off the walls (default 1)")
+    p.add_argument("--near-wall-noise", type=float, default=1.0,
+                   help="factor on the input-noise std of the first fluid ring off the walls "
+                   "(default 1)")
     p.add_argument("--init-from", default=None,
                    help="model folder of the same configuration to start from")
     p.add_argument("--oversample-re", default=None, metavar="RE:FACTOR",
@@ -330,6 +350,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        checkpoint_every=a.checkpoint_every)
     cfg = MeshNetConfig(latent=a.latent, mp_steps=a.mp_steps, noise_std=stages[0].noise_std)
     train_staged(a.data, a.out, cfg, tcfg, stages, near_wall_weight=a.near_wall_weight,
+                 near_wall_noise=a.near_wall_noise,
                  init_from=a.init_from,
                  oversample_re=None if a.oversample_re is None else parse_oversample(
                      a.oversample_re))
