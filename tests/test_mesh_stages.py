@@ -290,14 +290,18 @@ def test_oversampling_draws_the_high_reynolds_trajectories_by_their_factor(tmp_p
     )
     from diffgns.mesh.train import load_model
 
-    assert parse_oversample(" 200:3") == (200.0, 3.0)
-    for bad in ("200", "200:3:1", "x:3", "200:0.5", "-1:2", "200:nan"):
+    assert parse_oversample(" 200:3") == (200.0, np.inf, 3.0)
+    assert parse_oversample("75-100:2.5") == (75.0, 100.0, 2.5)
+    for bad in ("200", "200:3:1", "x:3", "200:0.5", "-1:2", "200:nan", "100-75:2",
+                "75-100-200:2", "75-:2"):
         with pytest.raises(InputError, match="oversample-re"):
             parse_oversample(bad)
-    w = trajectory_weights([75, 150, 200, 300], 200, 3)
+    w = trajectory_weights([75, 150, 200, 300], 200, np.inf, 3)
     np.testing.assert_allclose(w, [1 / 8, 1 / 8, 3 / 8, 3 / 8])
-    with pytest.raises(InputError, match="no trajectory has Re >= 400"):
-        trajectory_weights([75, 300], 400, 2)
+    np.testing.assert_allclose(trajectory_weights([75, 150, 200, 300], 75, 150, 2),
+                               [1 / 3, 1 / 3, 1 / 6, 1 / 6])
+    with pytest.raises(InputError, match=r"no trajectory has Re in \[400, inf\]"):
+        trajectory_weights([75, 300], 400, np.inf, 2)
     ti, win = draw_windows(np.random.default_rng(1), 4, 20, 3, 40000, w)
     np.testing.assert_allclose(np.bincount(ti, minlength=4) / 40000, w, atol=0.01)
     assert win.shape == (40000, 4) and win.min() == 0 and win.max() == 19
@@ -312,7 +316,7 @@ def test_oversampling_draws_the_high_reynolds_trajectories_by_their_factor(tmp_p
     tc = TrainConfig(steps=3, batch_size=1, lr=1e-2, lr_final=1e-2, log_every=1,
                      checkpoint_every=3)
     runs = {}
-    for name, over in [("u", None), ("o", (150.0, 1e9))]:
+    for name, over in [("u", None), ("o", (150.0, np.inf, 1e9))]:
         train_staged(tmp_path / "d.h5", tmp_path / name, cfg, tc, parse_stages("3:0.0:1"),
                      progress=False, oversample_re=over)
         runs[name] = load_model(tmp_path / name / "model")
@@ -320,7 +324,7 @@ def test_oversampling_draws_the_high_reynolds_trajectories_by_their_factor(tmp_p
     np.testing.assert_allclose(runs["o"][2]["trajectory_weights"], [0, 1], atol=1e-8)
     leaves = lambda r: jax.tree_util.tree_leaves(r[1])
     assert any(not np.array_equal(a, b) for a, b in zip(leaves(runs["u"]), leaves(runs["o"])))
-    with pytest.raises(InputError, match="no trajectory has Re >= 500"):
+    with pytest.raises(InputError, match="no trajectory has Re in"):
         main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
               "--stages", "2:0.0:1", "--oversample-re", "500:2"])
 

@@ -123,29 +123,35 @@ def stage_at(stages: Sequence[Stage], step: int) -> Stage:
     return stages[-1]
 
 
-def parse_oversample(text: str) -> tuple[float, float]:
-    """``"RE:FACTOR"``: trajectories at Reynolds number >= RE are drawn FACTOR (>= 1) times
-    as often as the others."""
+def parse_oversample(text: str) -> tuple[float, float, float]:
+    """``"LO-HI:FACTOR"`` or ``"LO:FACTOR"`` (HI infinite): trajectories at Reynolds numbers
+    in ``[LO, HI]`` are drawn FACTOR (>= 1) times as often as the others. Returns (LO, HI,
+    FACTOR)."""
     f = text.strip().split(":")
+    bounds = f[0].split("-") if len(f) == 2 else []
     try:
-        re_min, factor = (float(x) for x in f) if len(f) == 2 else (None, None)
-    except ValueError:
-        re_min = None
-    if re_min is None:
-        raise InputError("--oversample-re", f"{text!r} is not RE:FACTOR", "e.g. 200:3")
-    if not (np.isfinite(re_min) and re_min > 0 and np.isfinite(factor) and factor >= 1):
-        raise InputError("--oversample-re", f"{text!r}: RE must be > 0 and FACTOR >= 1")
-    return re_min, factor
+        lo, hi = float(bounds[0]), float(bounds[1]) if len(bounds) == 2 else np.inf
+        factor = float(f[1])
+    except (ValueError, IndexError):
+        raise InputError("--oversample-re", f"{text!r} is not LO-HI:FACTOR or LO:FACTOR",
+                         "e.g. 200:3 or 75-100:3") from None
+    if len(bounds) > 2 or not (np.isfinite(lo) and 0 < lo <= hi and np.isfinite(factor)
+                               and factor >= 1):
+        raise InputError("--oversample-re", f"{text!r}: needs 0 < LO <= HI and FACTOR >= 1")
+    return lo, hi, factor
 
 
-def trajectory_weights(reynolds: Sequence[float], re_min: float, factor: float) -> np.ndarray:
-    """Sampling probability of each trajectory (sums to 1): ``factor`` for ``Re >= re_min``,
-    1 otherwise. Refused if no trajectory reaches ``re_min`` (the option would do nothing)."""
+def trajectory_weights(reynolds: Sequence[float], lo: float, hi: float,
+                       factor: float) -> np.ndarray:
+    """Sampling probability of each trajectory (sums to 1): ``factor`` for ``lo <= Re <=
+    hi``, 1 otherwise. Refused if no trajectory is in the range (the option would do
+    nothing)."""
     re = np.asarray(reynolds, float)
-    if not (re >= re_min).any():
-        raise InputError("--oversample-re", f"no trajectory has Re >= {re_min:g} (the data "
-                         f"span Re {re.min():g}-{re.max():g})")
-    w = np.where(re >= re_min, factor, 1.0)
+    inside = (re >= lo) & (re <= hi)
+    if not inside.any():
+        raise InputError("--oversample-re", f"no trajectory has Re in [{lo:g}, {hi:g}] (the "
+                         f"data span Re {re.min():g}-{re.max():g})")
+    w = np.where(inside, factor, 1.0)
     return w / w.sum()
 
 
@@ -225,7 +231,7 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                  stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
                  init_from=None, near_wall_noise: float = 1.0,
-                 oversample_re: tuple[float, float] | None = None
+                 oversample_re: tuple[float, float, float] | None = None
                  ) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
@@ -233,8 +239,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     :func:`unrolled_loss`. ``init_from``: a
     model folder of the same configuration to start from (its params and normalisers,
     :func:`diffgns.mesh.train.fine_tune_start`; a fresh optimiser, steps counted from 0; a
-    resumed run keeps that model's normalisers). ``oversample_re``: (RE, FACTOR), draw the
-    trajectories at Re >= RE FACTOR times as often (:func:`trajectory_weights`; None =
+    resumed run keeps that model's normalisers). ``oversample_re``: (LO, HI, FACTOR), draw the
+    trajectories at LO <= Re <= HI FACTOR times as often (:func:`trajectory_weights`; None =
     uniform). Returns (model, params)."""
     if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
         raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
@@ -332,9 +338,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    "(default 1)")
     p.add_argument("--init-from", default=None,
                    help="model folder of the same configuration to start from")
-    p.add_argument("--oversample-re", default=None, metavar="RE:FACTOR",
-                   help="draw trajectories at Re >= RE FACTOR times as often (default: "
-                   "uniform)")
+    p.add_argument("--oversample-re", default=None, metavar="LO[-HI]:FACTOR",
+                   help="draw trajectories at LO <= Re (<= HI) FACTOR times as often "
+                   "(default: uniform)")
     a = p.parse_args(argv)
     check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
