@@ -193,6 +193,17 @@ meshnet-data: $(VENV)/.installed-test
 		--re 75 90 100 125 150 175 200 225 250 --reuse data/sweep_train_75_300.h5
 	OMP_NUM_THREADS=1 nice -n 19 $(PY) -m diffgns.mesh.sweep --out data/sweep_heldout.h5 \
 		--re 110 165 220 85 275
+	@# low Re sampled densely (2026-12-06: the models underfit Re 75-100); two CFD runs, the
+	@# rest copied
+	OMP_NUM_THREADS=1 nice -n 19 $(PY) -m diffgns.mesh.sweep --out data/sweep_train_dense.h5 \
+		--re 75 80 90 95 100 125 150 175 200 225 250 300 --reuse data/sweep_train_75_300.h5
+
+# fresh held-out Re for issue 23, drawn only after the model under test was frozen (it was
+# chosen on sweep_heldout.h5, which is therefore validation): 4 Re uniform in [75, 300]
+.PHONY: meshnet-fresh-data
+meshnet-fresh-data: $(VENV)/.installed-test
+	OMP_NUM_THREADS=1 nice -n 19 $(PY) -m diffgns.mesh.sweep --out data/sweep_fresh.h5 \
+		--draw 75 300 4 --seed 20261206
 
 meshnet-train: $(VENV)/.installed-test
 	@test -f data/sweep_train.h5 || { echo "data/sweep_train.h5 missing: make meshnet-data"; exit 2; }

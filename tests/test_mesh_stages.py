@@ -361,6 +361,50 @@ def test_push_forward_starts_the_loss_from_the_models_own_rollout_without_its_gr
         parse_stages("10:0.01:4:-1")
 
 
+
+def test_push_mask_false_starts_the_window_from_the_noisy_data_frame_and_the_trainer_sets_it(
+        tmp_path):
+    """push_mask False: the loss is the unpushed loss of the data window from frame P with the
+    same noise draw (by hand); True is the pushed loss. In training, --push-min-re leaves the
+    windows of higher-Re trajectories pushed as before and changes only the lower ones; a
+    threshold above every trajectory is refused."""
+    from diffgns.graph.fit import TrainConfig
+    from diffgns.mesh.meshnet import FLUID, MeshNetConfig
+    from diffgns.mesh.stages import main, train_staged, unrolled_loss
+    from diffgns.mesh.train import load_model
+
+    K, P, sigma = 2, 3, 0.05
+    model, params, g, v, p = _setup(k=K + P, seed=6)
+    key = jax.random.PRNGKey(2)
+    noise = sigma * jax.random.normal(key, v[0].shape, v.dtype) * (g.node_type == FLUID)[:, None]
+    by_hand = unrolled_loss(model, params, g, v[P:].at[0].add(noise), p[P:], key, 0.0)
+    off = unrolled_loss(model, params, g, v, p, key, sigma, push=P, push_mask=jnp.asarray(False))
+    on = unrolled_loss(model, params, g, v, p, key, sigma, push=P, push_mask=jnp.asarray(True))
+    assert float(off) == pytest.approx(float(by_hand), rel=1e-5)
+    assert float(on) == pytest.approx(float(unrolled_loss(model, params, g, v, p, key, sigma,
+                                                          push=P)), rel=1e-6)
+    assert abs(float(on) - float(off)) > 1e-3 * float(off)
+
+    _synthetic_dataset(tmp_path / "d.h5")  # Re 100 and 200
+    cfg = MeshNetConfig(latent=8, mp_steps=1)
+    tc = TrainConfig(steps=2, batch_size=1, lr=1e-2, lr_final=1e-2, log_every=1,
+                     checkpoint_every=2)
+    leaves = {}
+    for only, lo_hi in (("low", (50.0, 150.0, 1e9)), ("high", (150.0, np.inf, 1e9))):
+        for thr in (None, 150.0):
+            out = tmp_path / f"{only}{thr}"
+            train_staged(tmp_path / "d.h5", out, cfg, tc, parse_stages("2:0.01:1:2"),
+                         progress=False, oversample_re=lo_hi, push_min_re=thr)
+            m = load_model(out / "model")
+            assert m[2]["push_min_re"] == thr
+            leaves[only, thr] = jax.tree_util.tree_leaves(m[1])
+    same = lambda a, b: all(np.array_equal(x, y) for x, y in zip(leaves[a], leaves[b]))
+    assert same(("high", None), ("high", 150.0))  # Re 200 windows: pushed either way
+    assert not same(("low", None), ("low", 150.0))  # Re 100 windows: no longer pushed
+    with pytest.raises(InputError, match="no trajectory has Re >= 500"):
+        main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
+              "--stages", "2:0.0:1:2", "--push-min-re", "500"])
+
 def test_near_wall_noise_scales_the_input_noise_on_the_first_ring_only():
     """near_wall_noise = F: the loss equals the noise-free loss from a frame perturbed by hand
     with the same draws, F times larger on the first fluid ring off the walls, none on the
@@ -387,3 +431,25 @@ def test_near_wall_noise_scales_the_input_noise_on_the_first_ring_only():
     assert abs(float(scaled) - float(plain)) > 1e-4 * float(plain)
     with pytest.raises(InputError, match="near-wall-noise"):
         train_staged("missing.h5", "x", None, None, (), near_wall_noise=-1.0)
+
+
+def test_drawn_reynolds_numbers_depend_on_the_seed_alone_and_bad_draws_are_refused(capsys):
+    from diffgns.mesh.sweep import draw_reynolds, main
+
+    a = draw_reynolds(75.0, 300.0, 4, 20261206)
+    assert a == draw_reynolds(75.0, 300.0, 4, 20261206)  # named by its command
+    assert a != draw_reynolds(75.0, 300.0, 4, 20261207)
+    assert len(a) == 4 and all(75.0 <= r <= 300.0 for r in a)
+    assert all(r == round(r, 1) for r in a)
+    # the draw is spread over the range, not a constant or an endpoint
+    many = [r for seed in range(50) for r in draw_reynolds(75.0, 300.0, 4, seed)]
+    assert 165 < np.mean(many) < 210 and min(many) < 80 and max(many) > 295
+    with pytest.raises(ValueError, match="repeats"):  # two trajectories at one Re
+        draw_reynolds(100.0, 100.05, 5, 0)
+    for lo, hi, n in ((300.0, 75.0, 4), (0.0, 10.0, 2), (75.0, 300.0, 0), (75.0, 300.0, 2.5)):
+        with pytest.raises(ValueError, match="LO < HI"):
+            draw_reynolds(lo, hi, n, 0)
+    with pytest.raises(InputError, match="--draw"):
+        main(["--out", "x.h5", "--draw", "300", "75", "4"])
+    with pytest.raises(SystemExit):  # --re and --draw exclude each other
+        main(["--out", "x.h5", "--re", "100", "--draw", "75", "300", "4"])

@@ -176,13 +176,13 @@ def test_push_forward_unrolls_the_model_without_gradient(tmp_path):
     model = _model()
     params = model.init_network(jax.random.PRNGKey(0), g)
     v = jnp.asarray(np.random.default_rng(2).normal(size=(32, 2)), jnp.float32)
-    np.testing.assert_array_equal(np.asarray(mesh_train._pushed(model, params, g, v, 0)),
+    np.testing.assert_array_equal(np.asarray(mesh_train.pushed(model, params, g, v, 0)),
                                   np.asarray(v))
     two = model.advance(params, g, model.advance(params, g, v, v)[0], v)[0]
-    np.testing.assert_allclose(np.asarray(mesh_train._pushed(model, params, g, v, 2)),
+    np.testing.assert_allclose(np.asarray(mesh_train.pushed(model, params, g, v, 2)),
                                np.asarray(two), rtol=1e-5, atol=1e-6)
     # the unrolled frames carry no gradient: d/dparams of the pushed state is zero
-    grads = jax.grad(lambda p: mesh_train._pushed(model, p, g, v, 2).sum())(params)
+    grads = jax.grad(lambda p: mesh_train.pushed(model, p, g, v, 2).sum())(params)
     assert all(np.all(np.asarray(x) == 0) for x in jax.tree_util.tree_leaves(grads))
 
     _synthetic_dataset(tmp_path / "d.h5")

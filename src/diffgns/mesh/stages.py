@@ -66,6 +66,7 @@ from diffgns.mesh.train import (
     load_cylinder,
     padded_fields,
     padding_for,
+    pushed,
     save_model,
     stats_from_metadata,
 )
@@ -171,7 +172,8 @@ def draw_windows(rng: np.random.Generator, n_traj: int, n_frames: int, unroll: i
 def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_win: jax.Array,
                   key: jax.Array, noise_std, checkpoint: bool = True,
                   near_wall_weight: float = 1.0, push: int = 0,
-                  near_wall_noise: float = 1.0) -> jax.Array:
+                  near_wall_noise: float = 1.0,
+                  push_mask: jax.Array | None = None) -> jax.Array:
     """Weighted mean normalised error of a ``K``-frame model rollout against the data.
 
     With ``push = P > 0`` the model first rolls ``P`` frames from the noisy frame ``t``
@@ -189,6 +191,9 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         push: static count ``P >= 0`` of gradient-free frames before the loss.
         near_wall_noise: static factor on the noise std of the first fluid ring off the
             walls (:func:`~diffgns.mesh.meshnet.near_wall`; 1 = the same noise everywhere).
+        push_mask: traced bool scalar, or None (= True). False: this window is not pushed;
+            its ``K`` frames start from the noisy data frame ``t+P`` instead (the same
+            noise), so pushed and unpushed windows share one compiled step.
     Returns:
         scalar loss (dimensionless).
     """
@@ -196,12 +201,16 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
     noise = noise_std * jax.random.normal(key, v0.shape, v0.dtype)
     if near_wall_noise != 1.0:
         noise = noise * jnp.where(near_wall(graph), near_wall_noise, 1.0)[:, None]
-    v_in = v0 + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
+    noise = jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
+    v_in = v0 + noise
     s_dv = model.stats.target.std[:2]
-    if push:
-        frozen = jax.lax.stop_gradient(params)
-        v_in, _ = jax.lax.scan(lambda v, _: (model.advance(frozen, graph, v, v0)[0], None),
-                               v_in, None, length=push)
+    if push:  # boundary nodes carry no noise, so v_in holds them at the data's values
+        v_push = pushed(model, params, graph, v_in, push)
+        if push_mask is None:
+            v_in = v_push
+        else:  # an unpushed window is the data window from frame t+P, boundaries included
+            v_in = jnp.where(push_mask, v_push, v_win[push] + noise)
+            v0 = jnp.where(push_mask, v0, v_win[push])
 
     def body(v, data):
         v_next, p_next = data
@@ -231,8 +240,8 @@ def _check(stages: Sequence[Stage], tcfg: TrainConfig, n_frames: int) -> None:
 def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                  stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
                  init_from=None, near_wall_noise: float = 1.0,
-                 oversample_re: tuple[float, float, float] | None = None
-                 ) -> tuple[MeshNet, dict]:
+                 oversample_re: tuple[float, float, float] | None = None,
+                 push_min_re: float | None = None) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
     and ``out_dir/model``. ``near_wall_weight``, ``near_wall_noise``: see
@@ -241,7 +250,9 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     :func:`diffgns.mesh.train.fine_tune_start`; a fresh optimiser, steps counted from 0; a
     resumed run keeps that model's normalisers). ``oversample_re``: (LO, HI, FACTOR), draw the
     trajectories at LO <= Re <= HI FACTOR times as often (:func:`trajectory_weights`; None =
-    uniform). Returns (model, params)."""
+    uniform). ``push_min_re``: push-forward stages push only the windows of trajectories at
+    Re >= this (the others start their K frames from the data; None = every window).
+    Returns (model, params)."""
     if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
         raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
     if not (np.isfinite(near_wall_noise) and near_wall_noise >= 0):
@@ -252,8 +263,12 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     vel, pres = padded_fields(trajs, padding[0])
     T, F = vel.shape[:2]
     _check(stages, tcfg, F)
-    weights = None if oversample_re is None else trajectory_weights(
-        [float(t["attrs"]["reynolds"]) for t in trajs], *oversample_re)
+    reynolds = np.array([float(t["attrs"]["reynolds"]) for t in trajs])
+    weights = None if oversample_re is None else trajectory_weights(reynolds, *oversample_re)
+    if push_min_re is not None and not (reynolds >= push_min_re).any():
+        raise InputError("--push-min-re", f"no trajectory has Re >= {push_min_re:g} (the "
+                         f"data span Re {reynolds.min():g}-{reynolds.max():g})")
+    pushes = np.ones(T, bool) if push_min_re is None else reynolds >= push_min_re
     model = MeshNet(cfg, stats_from_metadata(read_metadata(train_path), trajs, 0.0,
                                              cfg.viscosity_feature),
                     frame_dt=float(trajs[0]["attrs"]["frame_dt"]))
@@ -268,17 +283,17 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     updates: dict = {}
 
     def update_fn(push: int):
-        def batch_loss(params, g, v, p, key, noise):
+        def batch_loss(params, g, v, p, key, noise, mask):
             keys = jax.random.split(key, v.shape[0])
-            f = lambda g1, v1, p1, k1: unrolled_loss(model, params, g1, v1, p1, k1, noise,
-                                                     near_wall_weight=near_wall_weight,
-                                                     push=push,
-                                                     near_wall_noise=near_wall_noise)
-            return jax.vmap(f)(g, v, p, keys).mean()
+            f = lambda g1, v1, p1, k1, m1: unrolled_loss(
+                model, params, g1, v1, p1, k1, noise, near_wall_weight=near_wall_weight,
+                push=push, near_wall_noise=near_wall_noise,
+                push_mask=None if push_min_re is None else m1)
+            return jax.vmap(f)(g, v, p, keys, mask).mean()
 
         @jax.jit
-        def update(params, opt_state, g, v, p, key, noise):
-            loss, grads = jax.value_and_grad(batch_loss)(params, g, v, p, key, noise)
+        def update(params, opt_state, g, v, p, key, noise, mask):
+            loss, grads = jax.value_and_grad(batch_loss)(params, g, v, p, key, noise, mask)
             upd, opt_state = opt.update(grads, opt_state, params)
             return optax.apply_updates(params, upd), opt_state, loss
         return update
@@ -293,7 +308,7 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
         g = jax.tree_util.tree_map(lambda a: a[ti], graphs)
         params, opt_state, loss = updates[k, st.push](
             params, opt_state, g, vel[ti[:, None], win], pres[ti[:, None], win[:, 1:]], key,
-            jnp.asarray(st.noise_std, vel.dtype))
+            jnp.asarray(st.noise_std, vel.dtype), jnp.asarray(pushes[ti]))
         return params, opt_state, (loss, st.noise_std, k)
 
     info = dict(train=dataclasses.asdict(tcfg), data=str(train_path), n_trajectories=T,
@@ -301,7 +316,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                 frame_dt=float(trajs[0]["attrs"]["frame_dt"]), trainer="diffgns.mesh.stages",
                 near_wall_weight=near_wall_weight, near_wall_noise=near_wall_noise,
                 init_from=None if init_from is None else str(init_from),
-                trajectory_weights=None if weights is None else weights.tolist())
+                trajectory_weights=None if weights is None else weights.tolist(),
+                push_min_re=push_min_re)
     opt_state = opt.init(params)
     try:
         params, _, step = fit(one_step, params, opt_state, tcfg, out, info,
@@ -341,6 +357,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--oversample-re", default=None, metavar="LO[-HI]:FACTOR",
                    help="draw trajectories at LO <= Re (<= HI) FACTOR times as often "
                    "(default: uniform)")
+    p.add_argument("--push-min-re", type=float, default=None, metavar="RE",
+                   help="push-forward stages push only the windows of trajectories at Re >= "
+                   "RE; the others start from the data (default: every window)")
     a = p.parse_args(argv)
     check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
@@ -359,7 +378,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                  near_wall_noise=a.near_wall_noise,
                  init_from=a.init_from,
                  oversample_re=None if a.oversample_re is None else parse_oversample(
-                     a.oversample_re))
+                     a.oversample_re), push_min_re=a.push_min_re)
     print(f"model written to {a.out}/model")
     return 0
 

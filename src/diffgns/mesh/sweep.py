@@ -38,6 +38,8 @@ from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
+import numpy as np
+
 from diffgns.errors import InputError, Interrupted, run_module
 from diffgns.io.dataset import read_metadata
 from diffgns.mesh.datagen import CylinderRun, simulate_case
@@ -180,12 +182,32 @@ def generate_sweep(path: str | Path, sweep: Sweep, workers: int = 2,
     return dict(wall_s=time.perf_counter() - t0, cases=sorted(done), reused=copied)
 
 
+def draw_reynolds(lo: float, hi: float, n: float, seed: int) -> tuple[float, ...]:
+    """``n`` Reynolds numbers uniform in ``[lo, hi]`` from ``seed``, rounded to 0.1.
+
+    The draw depends on the seed alone, so a held-out set is named by its command; it is
+    meant to be drawn after the model it tests is frozen.
+    """
+    if not (0 < lo < hi) or n < 1 or n != int(n):
+        raise ValueError(f"need 0 < LO < HI and a whole N >= 1, got LO={lo}, HI={hi}, N={n}")
+    draws = np.random.default_rng(seed).uniform(lo, hi, int(n))
+    out = tuple(float(r) for r in np.round(draws, 1))
+    if len(set(out)) != len(out):
+        raise ValueError(f"the draw repeats a Reynolds number: {out}; use another seed")
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m diffgns.mesh.sweep", description=__doc__
                                 .split("\n\n")[0])
     p.add_argument("--out", required=True, help="output .h5 file (resumed if it exists)")
-    p.add_argument("--re", type=float, nargs="+", required=True,
-                   help="Reynolds numbers Ubar D / nu, one trajectory each")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--re", type=float, nargs="+",
+                       help="Reynolds numbers Ubar D / nu, one trajectory each")
+    which.add_argument("--draw", type=float, nargs=3, metavar=("LO", "HI", "N"),
+                       help="N Reynolds numbers drawn uniformly in [LO, HI] from --seed "
+                            "(held-out sets drawn after a model is frozen)")
+    p.add_argument("--seed", type=int, default=0, help="seed of --draw")
     p.add_argument("--frames", type=int, default=201, help="stored frames per trajectory")
     p.add_argument("--frame-dt", type=float, default=0.02, help="time between frames, s")
     p.add_argument("--spinup", type=float, default=20.0,
@@ -199,12 +221,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         run = sweep_run(a.frames, a.frame_dt, a.spinup)
     except ValueError as e:
         raise InputError("--frames/--frame-dt/--spinup", str(e)) from None
+    if a.draw is not None:
+        lo, hi, n = a.draw
+        try:
+            reynolds = draw_reynolds(lo, hi, n, a.seed)
+        except ValueError as e:
+            raise InputError("--draw", str(e)) from None
+        print(f"drawn Re (seed {a.seed}): {' '.join(f'{r:g}' for r in reynolds)}")
+    else:
+        reynolds = tuple(a.re)
+
     def stop(signum, frame):
         raise Interrupted(signum)
 
     signal.signal(signal.SIGTERM, stop)  # SIGINT raises KeyboardInterrupt already
     os.environ.setdefault("OMP_NUM_THREADS", "1")  # inherited by the CFD processes
-    res = generate_sweep(a.out, Sweep(tuple(a.re), run=run), workers=a.workers,
+    res = generate_sweep(a.out, Sweep(reynolds, run=run), workers=a.workers,
                          reuse=a.reuse)
     print(f"{a.out}: {len(res['cases'])} new trajectories in {res['wall_s']:.0f} s wall "
           f"({a.workers} workers), {res['reused']} copied from {a.reuse}")

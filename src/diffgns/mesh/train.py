@@ -184,7 +184,7 @@ def average_models(paths, out: str | Path) -> Path:
     return Path(out)
 
 
-def _pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
+def pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
     """``v`` (N, 2) advanced ``n_push`` (traced int) model frames with stopped gradients;
     non-predicted nodes keep their values in ``v`` (steady boundary conditions)."""
     frozen = jax.lax.stop_gradient(params)
@@ -193,7 +193,7 @@ def _pushed(model: MeshNet, params, graph: MeshGraph, v, n_push):
 
 
 def _loss(model: MeshNet, params, graph: MeshGraph, v, v_next, p_next, key, n_push=0):
-    v = _pushed(model, params, graph, v, n_push)
+    v = pushed(model, params, graph, v, n_push)
     noise = model.config.noise_std * jax.random.normal(key, v.shape, v.dtype)
     v_in = v + jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     target = jnp.concatenate([v_next - v_in, p_next[:, None]], axis=-1)
