@@ -142,7 +142,7 @@ def parse_oversample(text: str) -> tuple[float, float, float]:
     return lo, hi, factor
 
 
-def trajectory_weights(reynolds: Sequence[float], lo: float, hi: float,
+def trajectory_weights(reynolds: Sequence[float] | np.ndarray, lo: float, hi: float,
                        factor: float) -> np.ndarray:
     """Sampling probability of each trajectory (sums to 1): ``factor`` for ``lo <= Re <=
     hi``, 1 otherwise. Refused if no trajectory is in the range (the option would do
