@@ -405,6 +405,35 @@ def test_push_mask_false_starts_the_window_from_the_noisy_data_frame_and_the_tra
         main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
               "--stages", "2:0.0:1:2", "--push-min-re", "500"])
 
+def test_divergence_weight_adds_the_continuity_term_of_each_frame_and_bad_weights_are_refused(
+        tmp_path):
+    """divergence_weight = L: the loss of a one-frame window grows by exactly L times the
+    continuity loss of the model's error (model minus data velocity over the rms
+    velocity-change scale, times the edge scale); 0 leaves it unchanged; a negative weight is
+    refused before any training."""
+    from diffgns.graph.features import Normalizer
+    from diffgns.mesh.meshnet import MeshNet, MeshStats, divergence_loss
+    from diffgns.mesh.stages import main
+
+    model, params, g, v, p = _setup(k=1, seed=4)
+    st = model.stats  # unequal velocity-change scales, so one scale must serve both
+    model = MeshNet(model.config, MeshStats(st.velocity, Normalizer(
+        st.target.mean, jnp.asarray([0.1, 0.03, 0.1])), st.edge_scale, st.viscosity))
+    key = jax.random.PRNGKey(1)
+    base = float(unrolled_loss(model, params, g, v, p, key, 0.0))
+    assert float(unrolled_loss(model, params, g, v, p, key, 0.0, divergence_weight=0.0)) == base
+    new_v, _ = model.advance(params, g, v[0], v[0])
+    term = float(divergence_loss(g, (new_v - v[1]) / np.sqrt((0.1**2 + 0.03**2) / 2),
+                                 model.stats.edge_scale))
+    assert term > 1e-3 * base
+    with_term = float(unrolled_loss(model, params, g, v, p, key, 0.0, divergence_weight=2.5))
+    assert with_term == pytest.approx(base + 2.5 * term, rel=1e-5)
+    _synthetic_dataset(tmp_path / "d.h5")
+    with pytest.raises(InputError, match="divergence-weight"):
+        main(["--data", str(tmp_path / "d.h5"), "--out", str(tmp_path / "e"),
+              "--stages", "2:0.0:1", "--divergence-weight", "-1"])
+
+
 def test_near_wall_noise_scales_the_input_noise_on_the_first_ring_only():
     """near_wall_noise = F: the loss equals the noise-free loss from a frame perturbed by hand
     with the same draws, F times larger on the first fluid ring off the walls, none on the

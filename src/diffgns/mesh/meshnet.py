@@ -123,12 +123,49 @@ def node_loss(graph: MeshGraph, err_v: jax.Array, err_p: jax.Array,
     return total / jnp.maximum(2.0 * w_v.sum() + w_p.sum(), 1.0)
 
 
+def divergence_loss(graph: MeshGraph, err_velocity: jax.Array, length: float) -> jax.Array:
+    """Mean over the predicted nodes (fluid and outflow) of ``(length * div e)^2``, with
+    ``div e`` the :func:`divergence` (1/s, here per unit of ``e``) of a dimensionless
+    velocity error field ``e`` (N, 2) (e.g. model minus data over the velocity scale) and
+    ``length`` (m) the mesh's edge scale; dimensionless. Zero for an error field without
+    divergence, however large; so it weighs the part of an error that breaks continuity
+    (flow into a wall, a jet from a stagnation point), which the node loss weighs like any
+    other."""
+    w = graph.predicted.astype(err_velocity.dtype)
+    d = length * divergence(graph, err_velocity)
+    return jnp.sum(w * d**2) / jnp.maximum(w.sum(), 1.0)
+
+
 def near_wall(graph: MeshGraph) -> jax.Array:
     """(N,) bool: predicted (fluid or outflow) nodes joined by a mesh edge to a wall node,
     the first ring off the cylinder and the channel walls (padded edges ignored)."""
     from_wall = (graph.node_type[graph.senders] == WALL) & graph.edge_mask
     hit = jnp.zeros(graph.node_type.shape, bool).at[graph.receivers].max(from_wall)
     return hit & graph.predicted
+
+
+def divergence(graph: MeshGraph, velocity: jax.Array) -> jax.Array:
+    """(N,) discrete divergence (1/s) of nodal velocities (N, 2) m/s: the trace of each
+    node's least-squares velocity gradient over its mesh edges,
+    ``G_i = (sum_j d_ij d_ij^T)^-1 sum_j d_ij (u_j - u_i)^T`` with ``d_ij = x_j - x_i`` (m)
+    (padded edges ignored; 0 on padding nodes and on nodes whose edges do not span the
+    plane). Exact for linear fields; on a boundary node one-sided, so compare it between two
+    fields on the same mesh (e.g. a model frame against the data frame) rather than against
+    zero."""
+    s, r, w = graph.senders, graph.receivers, graph.edge_mask.astype(velocity.dtype)
+    d = (graph.mesh_pos[s] - graph.mesh_pos[r]).astype(velocity.dtype) * w[:, None]
+    du = velocity[s] - velocity[r]
+    n = graph.mesh_pos.shape[0]
+    m = jax.ops.segment_sum(d[:, :, None] * d[:, None, :], r, n)        # (N, 2, 2) m^2
+    b = jax.ops.segment_sum(d[:, :, None] * du[:, None, :], r, n)       # (N, 2, 2) m^2/s
+    det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+    ok = (det > 1e-12 * jnp.maximum(m[:, 0, 0] + m[:, 1, 1], 1e-30) ** 2) & (
+        graph.node_type != PAD)
+    safe = jnp.where(ok, det, 1.0)
+    # trace(M^-1 B) with M^-1 = [[m11, -m01], [-m10, m00]] / det
+    tr = (m[:, 1, 1] * b[:, 0, 0] - m[:, 0, 1] * b[:, 1, 0]
+          - m[:, 1, 0] * b[:, 0, 1] + m[:, 0, 0] * b[:, 1, 1])
+    return jnp.where(ok, tr / safe, 0.0)
 
 
 def mesh_edges(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,11 @@ Issue 23's training levers, on the shared optimiser loop :func:`diffgns.graph.fi
 * **push-forward** (``push = P`` in a stage): the model first rolls ``P`` frames from the
   noisy data frame without gradients, and the ``K``-frame loss starts from that state of its
   own, so the network learns to steer its own accumulated errors back to the data;
+* **continuity term** (``--divergence-weight``): each frame's loss also weighs the discrete
+  divergence of the velocity error (:func:`~diffgns.mesh.meshnet.divergence_loss`), the part
+  of an error that breaks continuity: the spurious state long rollouts fall into at high Re
+  (flow into the cylinder's front, a jet from its stagnation point) has 4-5x the data's
+  divergence, and it rises before the drag collapses (issue 23, 2026-12-06);
 * on SIGTERM or SIGINT the checkpoint is written (by :func:`~diffgns.graph.fit.fit`), then
   ``out/model`` from it, and the process exits with 143 / 130; the same command resumes;
 * the normalisers hold the data statistics without the noise (unlike
@@ -57,6 +62,7 @@ from diffgns.mesh.meshnet import (
     MeshGraph,
     MeshNet,
     MeshNetConfig,
+    divergence_loss,
     near_wall,
     node_loss,
 )
@@ -173,7 +179,8 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
                   key: jax.Array, noise_std, checkpoint: bool = True,
                   near_wall_weight: float = 1.0, push: int = 0,
                   near_wall_noise: float = 1.0,
-                  push_mask: jax.Array | None = None) -> jax.Array:
+                  push_mask: jax.Array | None = None,
+                  divergence_weight: float = 0.0) -> jax.Array:
     """Weighted mean normalised error of a ``K``-frame model rollout against the data.
 
     With ``push = P > 0`` the model first rolls ``P`` frames from the noisy frame ``t``
@@ -194,6 +201,11 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         push_mask: traced bool scalar, or None (= True). False: this window is not pushed;
             its ``K`` frames start from the noisy data frame ``t+P`` instead (the same
             noise), so pushed and unpushed windows share one compiled step.
+        divergence_weight: static weight ``lambda >= 0`` of the continuity term added to
+            each frame's loss, ``lambda * divergence_loss(err_v)``
+            (:func:`~diffgns.mesh.meshnet.divergence_loss`: the discrete divergence of the
+            velocity error, model minus data, over the rms velocity-change scale, times the
+            edge scale); 0 = off.
     Returns:
         scalar loss (dimensionless).
     """
@@ -204,6 +216,7 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
     noise = jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     v_in = v0 + noise
     s_dv = model.stats.target.std[:2]
+    s_div = jnp.sqrt(jnp.mean(s_dv**2))
     if push:  # boundary nodes carry no noise, so v_in holds them at the data's values
         v_push = pushed(model, params, graph, v_in, push)
         if push_mask is None:
@@ -218,6 +231,9 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         err_v = (new_v - v_next) / s_dv
         err_p = (p - p_next) / model.stats.target.std[2]
         loss = node_loss(graph, err_v, err_p, near_wall_weight)
+        if divergence_weight:
+            e = (new_v - v_next) / s_div  # one scale for both components keeps div e
+            loss = loss + divergence_weight * divergence_loss(graph, e, model.stats.edge_scale)
         return new_v, loss
 
     _, losses = scan_frames(body, v_in, (v_win[1 + push:], p_win[push:]),
@@ -241,7 +257,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                  stages: Sequence[Stage], progress: bool = True, near_wall_weight: float = 1.0,
                  init_from=None, near_wall_noise: float = 1.0,
                  oversample_re: tuple[float, float, float] | None = None,
-                 push_min_re: float | None = None) -> tuple[MeshNet, dict]:
+                 push_min_re: float | None = None,
+                 divergence_weight: float = 0.0) -> tuple[MeshNet, dict]:
     """Train (or resume) a MeshGraphNet through ``stages`` on a cylinder dataset; writes
     ``out_dir/checkpoint.msgpack``, ``train_log.csv`` (loss, noise, unroll per logged step)
     and ``out_dir/model``. ``near_wall_weight``, ``near_wall_noise``: see
@@ -252,11 +269,15 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
     trajectories at LO <= Re <= HI FACTOR times as often (:func:`trajectory_weights`; None =
     uniform). ``push_min_re``: push-forward stages push only the windows of trajectories at
     Re >= this (the others start their K frames from the data; None = every window).
+    ``divergence_weight``: weight of the continuity term of :func:`unrolled_loss` (0 = off).
     Returns (model, params)."""
     if not (np.isfinite(near_wall_weight) and near_wall_weight > 0):
         raise InputError("--near-wall-weight", f"must be a weight > 0, got {near_wall_weight}")
     if not (np.isfinite(near_wall_noise) and near_wall_noise >= 0):
         raise InputError("--near-wall-noise", f"must be a factor >= 0, got {near_wall_noise}")
+    if not (np.isfinite(divergence_weight) and divergence_weight >= 0):
+        raise InputError("--divergence-weight", f"must be a weight >= 0, got "
+                         f"{divergence_weight}")
     out = Path(out_dir)
     trajs = load_cylinder(train_path)
     padding = padding_for(trajs)
@@ -288,7 +309,8 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
             f = lambda g1, v1, p1, k1, m1: unrolled_loss(
                 model, params, g1, v1, p1, k1, noise, near_wall_weight=near_wall_weight,
                 push=push, near_wall_noise=near_wall_noise,
-                push_mask=None if push_min_re is None else m1)
+                push_mask=None if push_min_re is None else m1,
+                divergence_weight=divergence_weight)
             return jax.vmap(f)(g, v, p, keys, mask).mean()
 
         @jax.jit
@@ -317,7 +339,7 @@ def train_staged(train_path, out_dir, cfg: MeshNetConfig, tcfg: TrainConfig,
                 near_wall_weight=near_wall_weight, near_wall_noise=near_wall_noise,
                 init_from=None if init_from is None else str(init_from),
                 trajectory_weights=None if weights is None else weights.tolist(),
-                push_min_re=push_min_re)
+                push_min_re=push_min_re, divergence_weight=divergence_weight)
     opt_state = opt.init(params)
     try:
         params, _, step = fit(one_step, params, opt_state, tcfg, out, info,
@@ -360,6 +382,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--push-min-re", type=float, default=None, metavar="RE",
                    help="push-forward stages push only the windows of trajectories at Re >= "
                    "RE; the others start from the data (default: every window)")
+    p.add_argument("--divergence-weight", type=float, default=0.0, metavar="LAMBDA",
+                   help="weight of the continuity term: the discrete divergence of the "
+                   "velocity error per frame (default 0 = off)")
     a = p.parse_args(argv)
     check_input_file(a.data, "--data", metadata=True)
     stages = parse_stages(a.stages)
@@ -378,7 +403,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                  near_wall_noise=a.near_wall_noise,
                  init_from=a.init_from,
                  oversample_re=None if a.oversample_re is None else parse_oversample(
-                     a.oversample_re), push_min_re=a.push_min_re)
+                     a.oversample_re), push_min_re=a.push_min_re,
+                 divergence_weight=a.divergence_weight)
     print(f"model written to {a.out}/model")
     return 0
 
