@@ -146,6 +146,71 @@ def test_push_forward_loss_is_of_the_order_of_the_unpushed_one():
     assert np.isfinite(float(l2)) and float(l2) < 2 * float(l0)
 
 
+def test_unrolled_loss_is_the_mean_of_one_step_losses_along_the_models_rollout():
+    """loss_frames = 2: the value is the mean of the one-step loss and the loss after one
+    model frame (which equals the 1-frame push-forward loss: same noise, same frame); unlike
+    that push-forward, the gradient flows through the first frame (it differs from the mean
+    of the two one-step gradients) and matches central finite differences. A window of the
+    wrong length and a loss of no frame are refused."""
+    trajs = synthetic(1)
+    gns = small_gns(trajs)
+    t = trajs[0]
+    w = t.positions[:8]
+    params = _init(gns, trajs)
+    nbrs = gns.allocate(w[5])
+    key = jax.random.PRNGKey(5)
+    rest = (t.particle_type, t.material, nbrs, key)
+
+    def two(p):
+        return window_loss(gns, p, w, *rest, 0, 0.0, loss_frames=2)[0]
+
+    def pieces(p):
+        return (window_loss(gns, p, w[:7], *rest, 0, 0.0)[0]
+                + window_loss(gns, p, w, *rest, 1, 0.0)[0]) / 2
+
+    assert float(two(params)) == pytest.approx(float(pieces(params)), rel=1e-5)
+    g, g_pieces = jax.grad(two)(params), jax.grad(pieces)(params)
+    flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])
+    assert np.linalg.norm(flat(g) - flat(g_pieces)) > 1e-2 * np.linalg.norm(flat(g))
+    # along the decoder's output bias (a uniform acceleration: the graph's edges do not
+    # change, so the loss is smooth there) the gradient is the finite difference
+    d = jax.tree_util.tree_map_with_path(
+        lambda path, a: jnp.ones_like(a) if "decoder" in jax.tree_util.keystr(path)
+        and jax.tree_util.keystr(path).endswith("['out']['bias']") else jnp.zeros_like(a),
+        params)
+    assert np.count_nonzero(flat(d)) == 2
+    shift = lambda s: jax.tree.map(lambda a, b: a + s * b, params, d)
+    fd = (float(two(shift(1e-2))) - float(two(shift(-1e-2)))) / 2e-2
+    assert float(np.dot(flat(g), flat(d))) == pytest.approx(fd, rel=5e-3)
+    assert abs(float(np.dot(flat(g_pieces), flat(d))) - fd) > 0.05 * abs(fd)
+    with pytest.raises(ValueError, match="need 9"):
+        window_loss(gns, params, w, *rest, 1, 0.0, loss_frames=2)
+    with pytest.raises(ValueError, match="unroll"):
+        TrainConfig(unroll=0)
+
+
+def test_unrolled_training_draws_windows_long_enough_and_records_the_option(tmp_path, capsys):
+    """diffgns.graph.train_loop.train with unroll 3 and push-forward 1: the sampler's
+    windows fit the loss (a wrong length raises), the run trains to a finite loss and
+    records the option; --unroll is refused for a MeshGraphNet."""
+    from diffgns.cli import main as cli_main
+    from diffgns.graph.train_loop import train
+
+    path = tmp_path / "d.npz"
+    write_gns_npz(path, synthetic(2, T=14))
+    tcfg = TrainConfig(steps=2, batch_size=1, lr=1e-3, push_forward=1, unroll=3,
+                       log_every=1, checkpoint_every=2, validate_every=100)
+    train([path], tmp_path / "run", dict(bounds=BOUNDS, radius=0.045, latent=8, mp_steps=1,
+                                         mlp_layers=1, noise_std=1e-4), tcfg, progress=False)
+    info = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert info["train"]["unroll"] == 3 and info["train"]["push_forward"] == 1
+    log = (tmp_path / "run" / "train_log.csv").read_text().splitlines()
+    assert np.isfinite(float(log[-1].split(",")[1]))
+    assert cli_main(["train", "--kind", "mesh", "--data", str(path), "--out",
+                     str(tmp_path / "m"), "--unroll", "2"]) != 0
+    assert "--unroll: is a particle-GNS option" in capsys.readouterr().err
+
+
 def test_training_reduces_loss_and_resumes_exactly(tmp_path):
     trajs = synthetic()
     gns = small_gns(trajs)

@@ -40,6 +40,9 @@ def _train(args) -> int:
         from diffgns.distributed import process_count
         from diffgns.errors import InputError
 
+        if args.unroll != 1:
+            raise InputError("--unroll", "is a particle-GNS option", "for a MeshGraphNet "
+                             "use python -m diffgns.mesh.stages --stages UNTIL:NOISE:K")
         if process_count() > 1:
             raise InputError("--kind mesh", "trains in one process only",
                              "drop --distributed/--coordinator, or train --kind particles")
@@ -48,7 +51,8 @@ def _train(args) -> int:
         args.noise_std = 6.7e-4
     tcfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                        lr_final=args.lr_final, lr_decay_steps=args.lr_decay_steps or args.steps,
-                       push_forward=args.push_forward, momentum_weight=args.momentum_weight,
+                       push_forward=args.push_forward, unroll=args.unroll,
+                       momentum_weight=args.momentum_weight,
                        huber_delta=args.huber_delta,
                        target_scale_floor=args.target_scale_floor, seed=args.seed,
                        validate_every=args.validate_every, checkpoint_every=args.checkpoint_every,
@@ -195,6 +199,10 @@ def register(sub) -> None:
     t.add_argument("--push-forward", type=int, default=0,
                    help="extra unrolled steps of push-forward training, count >= 0 "
                    "(default 0)")
+    t.add_argument("--unroll", type=count, default=1,
+                   help="particles: frames of the loss, count >= 1: K > 1 rolls the model K "
+                   "frames on its own predictions and back-propagates through them "
+                   "(default 1: the one-step loss)")
     t.add_argument("--momentum-weight", type=non_negative, default=0.0,
                    help="particles: weight of the momentum-conservation loss, "
                    "dimensionless (default 0)")

@@ -80,6 +80,10 @@ class TrainConfig:
         lr, lr_final, lr_decay_steps: Adam with exponential decay lr -> lr_final over
             lr_decay_steps, floored at lr_final (:func:`learning_rate`).
         push_forward: extra unrolled steps (without gradient) before the loss step.
+        unroll: GNS only: frames of the loss (>= 1). 1 is the one-step loss; K > 1 rolls the
+            model K frames on its own predictions and averages the K one-step losses, the
+            gradient flowing back through the rollout
+            (:func:`diffgns.graph.training.window_loss`).
         momentum_weight: GNS only: weight of the soft momentum-balance penalty: the squared
             error of the mean predicted acceleration (the total momentum change of the system
             per frame, equal masses) against the data's. 0 disables it.
@@ -107,6 +111,7 @@ class TrainConfig:
     lr_final: float = 1e-5
     lr_decay_steps: int = 20000
     push_forward: int = 0
+    unroll: int = 1
     momentum_weight: float = 0.0
     huber_delta: float = 0.0
     target_scale_floor: float = 0.0
@@ -122,6 +127,8 @@ class TrainConfig:
         if not (self.target_scale_floor >= 0 and self.target_scale_floor < float("inf")):
             raise ValueError(f"target_scale_floor must be a finite number >= 0, got "
                              f"{self.target_scale_floor}")
+        if not (isinstance(self.unroll, int) and self.unroll >= 1):
+            raise ValueError(f"unroll must be a frame count >= 1, got {self.unroll!r}")
         if self.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be >= 1, got {self.steps_per_call}")
 

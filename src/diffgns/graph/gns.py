@@ -335,6 +335,16 @@ class GNS:
         senders, receivers, mask = edges(nbrs, n)
         acc = self.acceleration(network, history, particle_type, material, senders,
                                 receivers, mask, geometry)
+        x_next, clamp = self.integrate(history, acc, particle_type, kinematic_next, geometry)
+        return x_next, nbrs, clamp
+
+    def integrate(self, history, acc, particle_type, kinematic_next=None,
+                  geometry: Geometry | None = None):
+        """Next positions (N, d) m of the semi-implicit Euler step ``x + (x - x_prev) +
+        acc`` from ``history`` (N, C+1, d) and the acceleration ``acc`` (N, d) m/frame^2, with
+        the kinematic and wall rules of :meth:`advance`, and the step's
+        :class:`~diffgns.clamp.ClampCount`."""
+        x = history[:, -1]
         x_next = x + (x - history[:, -2]) + acc
         target = x if kinematic_next is None else kinematic_next
         x_next = jnp.where((particle_type == KINEMATIC)[:, None], target, x_next)
@@ -344,7 +354,7 @@ class GNS:
                                 x_next.dtype)
             lo, hi = walls[:, 0], walls[:, 1]
             x_next, clamp = clamp_positions(x_next, lo, hi, axis=-1)
-        return x_next.astype(history.dtype), nbrs, clamp
+        return x_next.astype(history.dtype), clamp
 
     def step(self, params: GNSParams, state: GNSState) -> GNSState:
         """Advance one frame (pure)."""

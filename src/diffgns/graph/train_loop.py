@@ -262,6 +262,7 @@ def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int 
     (:func:`~diffgns.graph.data.mirror_window`); ``active_windows``: weight of a window's
     activity in drawing its start (:func:`~diffgns.graph.data.window_activity`)."""
     frames, weight = early_windows or (0, 1.0)
+    extra = tcfg.push_forward + tcfg.unroll - 1  # frames past the one-step window
     early = dict(early_frames=int(frames), early_weight=float(weight), mirror=float(mirror),
                  active_weight=float(active_windows))
     if families is None:
@@ -269,10 +270,10 @@ def make_sampler(gns: GNS, trajs, tcfg: TrainConfig, families=None, pad_to: int 
             raise InputError("--pad-nodes/--family-weights", "the training data records no "
                              "scene families", "use data of diffgns dataset --kind granular, "
                              "or drop these options")
-        return WindowSampler(trajs, gns.config.history, tcfg.push_forward, **early)
+        return WindowSampler(trajs, gns.config.history, extra, **early)
     if len(families) != len(trajs):
         raise ValueError(f"{len(families)} families for {len(trajs)} trajectories")
-    return FamilyWindowSampler(trajs, gns.config.history, tcfg.push_forward, **early,
+    return FamilyWindowSampler(trajs, gns.config.history, extra, **early,
                                families=families, weights=family_weights, pad_to=pad_to,
                                bounds=gns.config.bounds, radius=gns.config.radius)
 

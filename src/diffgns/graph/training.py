@@ -60,9 +60,18 @@ def pushed_target(window, hist, unroll: int):
 
 def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, unroll: int,
                 momentum_weight: float, geometry: Geometry | None = None,
-                huber_delta: float = 0.0, target_scale_floor: float = 0.0):
-    """Loss of one window (L, N, d) of positions, L = history + 2 + unroll, in the walls and
-    obstacles ``geometry`` (default: the GNS's box, no obstacle).
+                huber_delta: float = 0.0, target_scale_floor: float = 0.0,
+                loss_frames: int = 1):
+    """Loss of one window (L, N, d) of positions, L = history + 1 + unroll + loss_frames,
+    in the walls and obstacles ``geometry`` (default: the GNS's box, no obstacle).
+
+    ``unroll`` push-forward frames first roll the model without gradient. Then
+    ``loss_frames = K`` frames: the loss of each is the one-step loss below of the model's
+    current history against :func:`pushed_target`, after which the model advances that
+    history by its own prediction (:meth:`~diffgns.graph.gns.GNS.integrate`, walls and
+    kinematic nodes included) *with* gradient, so the mean of the K losses is
+    differentiated through the rollout: a prediction is also charged for the errors it
+    causes in the frames after it. ``K = 1`` is the one-step loss.
 
     Per particle the squared error of the normalised acceleration summed over components,
     or with ``huber_delta > 0`` twice optax's Huber loss per component (equal to the squared
@@ -76,6 +85,10 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
     ~500x (the losses of the two kinds of batch on the granular data, in
     ``gns_cg16_pfn``'s units), in the gradient or in Adam's second moments."""
     C = gns.config.history
+    if window.shape[0] != C + 1 + unroll + loss_frames:  # static; jnp indexing would clip
+        raise ValueError(f"window_loss: a window of {window.shape[0]} frames, but history "
+                         f"{C}, push-forward {unroll} and {loss_frames} loss frames need "
+                         f"{C + 1 + unroll + loss_frames}")
     clean = jnp.swapaxes(window[: C + 1], 0, 1)  # (N, C+1, d)
     noise = random_walk_noise(key, clean, gns.config.noise_std, particle_type)
     hist = clean + noise
@@ -86,14 +99,28 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
                                     material, nbrs, window[C + 1 + k], geometry)
         over |= did_overflow(nb)
         hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
-    target = pushed_target(window, hist, unroll)  # noise and push-forward drift alike
-    nb = gns.neighbors.update(hist[:, -1], nbrs)
-    over |= did_overflow(nb)
-    s, r, m = edges(nb, n)
-    pred = gns.normalized_acceleration(params, hist, particle_type, material, s, r, m,
-                                       geometry)
-    tgt = gns.normalizer.acceleration.normalize(target)
-    w = (particle_type != KINEMATIC).astype(pred.dtype)
+    w = (particle_type != KINEMATIC).astype(hist.dtype)
+    total = jnp.zeros((), hist.dtype)
+    for k in range(loss_frames):  # k > 0: the model's own frames, with gradient
+        target = pushed_target(window, hist, unroll + k)  # noise and drift alike
+        nb = gns.neighbors.update(hist[:, -1], nbrs)
+        over |= did_overflow(nb)
+        s, r, m = edges(nb, n)
+        pred = gns.normalized_acceleration(params, hist, particle_type, material, s, r, m,
+                                           geometry)
+        total = total + _frame_loss(pred, gns.normalizer.acceleration.normalize(target), w,
+                                    momentum_weight, huber_delta, target_scale_floor)
+        if k + 1 < loss_frames:
+            x_next, _ = gns.integrate(hist, gns.normalizer.acceleration.denormalize(pred),
+                                      particle_type, window[C + 1 + unroll + k], geometry)
+            hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
+    return total / loss_frames, over
+
+
+def _frame_loss(pred, tgt, w, momentum_weight: float, huber_delta: float,
+                target_scale_floor: float):
+    """One frame's loss of :func:`window_loss`: normalised predicted against target
+    accelerations (N, d), weights ``w`` (N,) (0 on kinematic nodes)."""
     per = (2.0 * optax.losses.huber_loss(pred, tgt, delta=huber_delta) if huber_delta
            else (pred - tgt) ** 2)
     loss = jnp.sum(w * jnp.sum(per, -1)) / jnp.maximum(w.sum(), 1.0)
@@ -103,7 +130,7 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
     if target_scale_floor:
         ms = jnp.sum(w * jnp.sum(tgt**2, -1)) / jnp.maximum(w.sum(), 1.0)
         loss = loss / (jax.lax.stop_gradient(ms) + target_scale_floor)
-    return loss, over
+    return loss
 
 
 class Trainer:
@@ -129,7 +156,7 @@ class Trainer:
         f = lambda w, t, m, k, g: window_loss(self.gns, params, w, t, m, nbrs, k,
                                               self.cfg.push_forward, self.cfg.momentum_weight,
                                               g, self.cfg.huber_delta,
-                                              self.cfg.target_scale_floor)
+                                              self.cfg.target_scale_floor, self.cfg.unroll)
         geometry = None
         if "walls" in batch:  # per-window walls (B, d, 2) and obstacles (B, K, 2d)
             geometry = Geometry(batch["walls"], batch["obstacles"])
