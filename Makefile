@@ -214,7 +214,7 @@ meshnet-train: $(VENV)/.installed-test
 		--stages $(MESHNET_STAGES) $(MESHNET_NET)
 
 # meshnet-eval: the shipped model by default; MESHNET_MODEL=runs/<run>/model for a run
-MESHNET_MODEL ?= meshnet_sweep
+MESHNET_MODEL ?= meshnet_sweep_wide
 meshnet-eval: $(VENV)/.installed-test
 	@test -f data/sweep_heldout.h5 || { echo "data/sweep_heldout.h5 missing: make meshnet-data"; exit 2; }
 	$(PY) -m diffgns.mesh.evaluate --model $(MESHNET_MODEL) --data data/sweep_heldout.h5

@@ -101,12 +101,14 @@ def test_package_data_globs_cover_every_shipped_weight_file():
         assert json.loads(next(folder.glob("*.json")).read_text())
 
 
-@pytest.mark.slow  # ~20 s: network set-up and 32 frames on the sweep mesh
-def test_the_shipped_meshgraphnet_sheds_with_the_cfds_lift():
-    """meshnet_sweep loads by name and, from the CFD's frame 0 at held-out Re 165 (33 frames
-    stored in float16, 2 shedding periods), its 32-frame rollout stays within 0.04 m/s RMS of
-    the CFD, and the pressure lift of the rollout follows the CFD's (correlation > 0.95,
-    peak-to-peak within 20%): the regression guard of its model card's Re 165 row."""
+@pytest.mark.slow  # ~20 s each: network set-up and 32 frames on the sweep mesh
+@pytest.mark.parametrize("name", ["meshnet_sweep", "meshnet_sweep_wide"])
+def test_the_shipped_meshgraphnet_sheds_with_the_cfds_lift(name):
+    """The shipped MeshGraphNet ``name`` loads by name and, from the CFD's frame 0 at
+    held-out Re 165 (33 frames stored in float16, 2 shedding periods), its 32-frame rollout
+    stays within 0.04 m/s RMS of the CFD, and the pressure lift of the rollout follows the
+    CFD's (correlation > 0.95, peak-to-peak within 20%): the regression guard of its model
+    card's Re 165 row."""
     from diffgns.interface import rollout_jit
     from diffgns.mesh.evaluate import graph_of, pressure_force_coefficients
     from diffgns.mesh.train import load_model
@@ -116,7 +118,7 @@ def test_the_shipped_meshgraphnet_sheds_with_the_cfds_lift():
     traj["attrs"] = json.loads(str(d["attrs"]))
     traj["velocity"] = d["velocity"].astype(np.float32)
     pressure = d["pressure"].astype(np.float32)
-    model, params, info = load_model("meshnet_sweep")
+    model, params, info = load_model(name)
     assert info["kind"] == "meshgraphnet" and model.config.latent == 64
     n, F = len(traj["mesh_pos"]), len(traj["velocity"])
     graph = graph_of(traj, info["padding"])
