@@ -181,7 +181,7 @@ MESHNET_STAGES ?= 1000:0.003:1,3000:0.0015:1,6000:0.00075:1,20000:0.0004:1
 MESHNET_CKPT = checkpoints/$(notdir $(MESHNET_RUN))
 MESHNET_NET ?= --latent 32 --mp-steps 6 --batch-size 2 --lr 1e-3 --lr-final 1e-5 \
 	--checkpoint-every 100
-.PHONY: meshnet-data meshnet-train meshnet-eval
+.PHONY: meshnet-data meshnet-train meshnet-train-wide meshnet-eval
 meshnet-data: $(VENV)/.installed-test
 	@# the widest training range (the last stages of meshnet_sweep, 2026-12-05) is computed;
 	@# the CFD is deterministic, so the narrower files of the earlier stages copy from it
@@ -212,6 +212,12 @@ meshnet-train: $(VENV)/.installed-test
 		{ mkdir -p $(MESHNET_RUN) && cp -r $(MESHNET_CKPT)/. $(MESHNET_RUN)/; }
 	nice -n 19 $(PY) -m diffgns.mesh.stages --data data/sweep_train.h5 --out $(MESHNET_RUN) \
 		--stages $(MESHNET_STAGES) $(MESHNET_NET)
+
+# the training chain of the shipped meshnet_sweep_wide (every stage committed, so it only
+# copies them; an interrupted stage resumes); DRY=1 prints the commands
+meshnet-train-wide: $(VENV)/.installed-test
+	@test -f data/sweep_train_dense.h5 || { echo "data/sweep_train_dense.h5 missing: make meshnet-data"; exit 2; }
+	nice -n 19 bash examples/train_meshnet_sweep_wide.sh
 
 # meshnet-eval: the shipped model by default; MESHNET_MODEL=runs/<run>/model for a run
 MESHNET_MODEL ?= meshnet_sweep_wide
