@@ -161,9 +161,11 @@ def test_unrolled_loss_is_the_mean_of_one_step_losses_along_the_models_rollout()
     key = jax.random.PRNGKey(5)
     rest = (t.particle_type, t.material, nbrs, key)
 
+    @jax.jit
     def two(p):
         return window_loss(gns, p, w, *rest, 0, 0.0, loss_frames=2)[0]
 
+    @jax.jit
     def pieces(p):
         return (window_loss(gns, p, w[:7], *rest, 0, 0.0)[0]
                 + window_loss(gns, p, w, *rest, 1, 0.0)[0]) / 2
