@@ -13,7 +13,7 @@
 # Every stage is committed as checkpoints/meshnet_<stage>, so the script copies those and
 # skips them (a stage whose model/ exists is done; an interrupted one resumes from its
 # checkpoint with the same command; SIGTERM writes the checkpoint). DRY=1 prints the commands.
-# One core each, ~0.9-2.2 s/step (push-forward stages the slow end), ~4 h for the whole chain.
+# One core, ~0.9-2.2 s/step (push-forward stages the slow end): ~3 h for the whole chain.
 # Run niced in the background:  nice -n 19 nohup examples/train_meshnet_sweep_wide.sh &> runs/meshnet_wide.log &
 set -euo pipefail
 run() { if [ -n "${DRY:-}" ]; then echo "$@"; else "$@"; fi; }

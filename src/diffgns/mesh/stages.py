@@ -216,7 +216,6 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
     noise = jnp.where((graph.node_type == FLUID)[:, None], noise, 0.0)
     v_in = v0 + noise
     s_dv = model.stats.target.std[:2]
-    s_div = jnp.sqrt(jnp.mean(s_dv**2))
     if push:  # boundary nodes carry no noise, so v_in holds them at the data's values
         v_push = pushed(model, params, graph, v_in, push)
         if push_mask is None:
@@ -232,7 +231,8 @@ def unrolled_loss(model: MeshNet, params, graph: MeshGraph, v_win: jax.Array, p_
         err_p = (p - p_next) / model.stats.target.std[2]
         loss = node_loss(graph, err_v, err_p, near_wall_weight)
         if divergence_weight:
-            e = (new_v - v_next) / s_div  # one scale for both components keeps div e
+            # one scale for both components, so e's divergence is the error's divergence
+            e = (new_v - v_next) / jnp.sqrt(jnp.mean(s_dv**2))
             loss = loss + divergence_weight * divergence_loss(graph, e, model.stats.edge_scale)
         return new_v, loss
 
