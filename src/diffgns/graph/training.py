@@ -54,8 +54,10 @@ def pushed_target(window, hist, unroll: int):
     the loss (measured: normalised loss 1.46 against 0.0125 without pushing).
     """
     C = hist.shape[1] - 1
-    truth = jnp.swapaxes(window[unroll: C + 1 + unroll], 0, 1)
-    return target_acceleration(window[C + 1 + unroll], truth, hist - truth)
+    # dynamic slices: ``unroll`` may be traced (the frame index of window_loss's scan)
+    truth = jnp.swapaxes(jax.lax.dynamic_slice_in_dim(window, unroll, C + 1, 0), 0, 1)
+    nxt = jax.lax.dynamic_index_in_dim(window, C + 1 + unroll, 0, keepdims=False)
+    return target_acceleration(nxt, truth, hist - truth)
 
 
 def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, unroll: int,
@@ -100,20 +102,27 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
         over |= did_overflow(nb)
         hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
     w = (particle_type != KINEMATIC).astype(hist.dtype)
-    total = jnp.zeros((), hist.dtype)
-    for k in range(loss_frames):  # k > 0: the model's own frames, with gradient
+
+    def frame(carry, k):  # k > 0: the model's own frames, with gradient
+        hist, total, over = carry
         target = pushed_target(window, hist, unroll + k)  # noise and drift alike
         nb = gns.neighbors.update(hist[:, -1], nbrs)
-        over |= did_overflow(nb)
         s, r, m = edges(nb, n)
         pred = gns.normalized_acceleration(params, hist, particle_type, material, s, r, m,
                                            geometry)
         total = total + _frame_loss(pred, gns.normalizer.acceleration.normalize(target), w,
                                     momentum_weight, huber_delta, target_scale_floor)
-        if k + 1 < loss_frames:
-            x_next, _ = gns.integrate(hist, gns.normalizer.acceleration.denormalize(pred),
-                                      particle_type, window[C + 1 + unroll + k], geometry)
-            hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
+        kin = jax.lax.dynamic_index_in_dim(window, C + 1 + unroll + k, 0, keepdims=False)
+        x_next, _ = gns.integrate(hist, gns.normalizer.acceleration.denormalize(pred),
+                                  particle_type, kin, geometry)
+        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)
+        return (hist, total, over | did_overflow(nb)), None
+
+    # One traced frame for every K (compile time independent of K; a Python loop took
+    # minutes per node count at K = 8). The last frame's integrate feeds nothing: its
+    # output and gradient are dropped.
+    (_, total, over), _ = jax.lax.scan(frame, (hist, jnp.zeros((), hist.dtype), over),
+                                       jnp.arange(loss_frames))
     return total / loss_frames, over
 
 
