@@ -208,7 +208,7 @@ def test_a_model_listing_its_training_boxes_runs_in_a_longer_box():
     assert any("outside the range of the training boxes" in w for w in sup.warnings)
     assert any("obstacle" in w for w in sup.warnings)
     inside = check_scene(_scene(((0.0, 0.7), (0.0, 0.4))), dict(info, gns=dict(
-        info["gns"], use_obstacles=True)))
+        info["gns"], use_obstacles=True), source=dict(info["source"], kind="granular")))
     assert inside.warnings == ()
 
 

@@ -48,6 +48,22 @@ def test_a_supported_non_column_scene_runs_with_warnings():
     assert check_scene(col, _info()).warnings == ()
 
 
+def test_column_model_warns_off_the_left_wall_and_moving_bodies_only_when_untrained():
+    """A column-only model (trained against the left wall, at rest) warns for a column against
+    the right wall; a model whose training families had moving bodies does not warn that
+    bodies move, one with mirror augmentation not about the wall."""
+    column = Body(Rectangle(0.7, 0.0, 0.8, 0.1), Sand(friction_angle=30.0),
+                  particles_per_cell=4, name="column")
+    right = _scene(bodies=(column,), obstacles=())
+    (w,) = check_scene(right, _info()).warnings
+    assert "does not rest against the left wall (x = 0 m)" in w
+    assert check_scene(right, dict(_info(), mirror=0.5)).warnings == ()
+    general = dict(_info(), families=["columns", "squares"])
+    assert not any("moving" in w for w in check_scene(_scene(), general).warnings)
+    assert any("moving" in w for w in check_scene(_scene(), dict(_info(), families=[
+        "columns"])).warnings)
+
+
 @pytest.mark.parametrize("change,expected", [
     (dict(domain=((0.0, 1.0), (0.0, 0.35))), r"box \[0, 1\] x \[0, 0.35\] m is not the "
      r"training box \[0, 0.8\] x \[0, 0.35\] m"),

@@ -23,8 +23,10 @@ for:
   frame_stride`` (the GNS step) would differ.
 
 What the network has no feature for but can still run on (obstacles, other wall friction,
-other gravity, moving initial bodies) is returned as warnings: such runs are out of the
-training distribution, not impossible.
+other gravity, moving initial bodies when no training family had them, a body away from the
+left wall for a model trained on left-wall columns only) is returned as warnings: such runs
+are out of the training distribution, not impossible. :func:`diffgns.inverse.simulators.
+default_model` prefers a model that has no warning for the scene.
 """
 from __future__ import annotations
 
@@ -215,6 +217,10 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
     return SceneSupport(factor, src.frame_stride, tuple(_warnings(scene, info)))
 
 
+#: scene families (:mod:`diffgns.scene.families`) whose training scenes have moving bodies
+MOVING_FAMILIES = frozenset({"squares", "obstacles", "collision"})
+
+
 def _warnings(scene: Scene, info: dict) -> list[str]:
     out = []
     boxes = np.asarray((info.get("source") or {}).get("boxes") or [], float)
@@ -229,8 +235,19 @@ def _warnings(scene: Scene, info: dict) -> list[str]:
     if scene.obstacles and not info.get("gns", {}).get("use_obstacles", False):
         out.append(f"the scene has {len(scene.obstacles)} obstacle(s); the network has no "
                    "obstacle input (trained without obstacles)")
-    if any(any(v != 0 for v in (b.velocity or ())) for b in scene.bodies):
+    families = set(info.get("families") or ())
+    if (any(any(v != 0 for v in (b.velocity or ())) for b in scene.bodies)
+            and not families & MOVING_FAMILIES):
         out.append("bodies start moving; the training scenes started at rest")
+    if (info.get("source") or {}).get("kind") == "column" and not info.get("mirror"):
+        x_left = float(scene.domain[0][0])
+        off = [b.name or str(i) for i, b in enumerate(scene.bodies)
+               if float(b.shape.lower[0]) - x_left > scene.dx]
+        if off:
+            out.append(f"body {', '.join(off)} does not rest against the left wall (x = "
+                       f"{x_left:g} m); the model was trained on columns against the left wall "
+                       "only, and a column against the right wall is 64-87% off in runout "
+                       "(gns_cg16_pfn on the validation scenes; GNS guide)")
     trained_g = (0.0, -9.81) + (0.0,) * (scene.dim - 2)
     if tuple(scene.gravity or ()) != trained_g:
         out.append(f"gravity {scene.gravity} m/s^2 differs from the training ("

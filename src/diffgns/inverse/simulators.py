@@ -225,17 +225,23 @@ def model_info(model: str | Path = DEFAULT_MODEL) -> dict:
 
 def default_model(scene) -> str:
     """The most accurate shipped GNS (:data:`MODELS_BY_ACCURACY`) that supports ``scene`` at
-    its own MPM resolution (:func:`~diffgns.graph.support.check_scene`), or
-    :data:`DEFAULT_MODEL` when none does (its refusal then names the mismatch)."""
+    its own MPM resolution (:func:`~diffgns.graph.support.check_scene`) with no warning (the
+    scene inside what it was trained on), else the most accurate that supports it at all,
+    else :data:`DEFAULT_MODEL` (its refusal then names the mismatch). So a column against
+    the left wall of the training box gets ``gns_cg16_pfn``, and a scene with obstacles,
+    moving bodies or a column against the right wall gets ``gns_general``."""
     from diffgns.graph.support import UnsupportedSceneError, check_scene
 
+    supported = []
     for name in MODELS_BY_ACCURACY:
         try:
-            check_scene(scene, model_info(name), "exact", name)
+            sup = check_scene(scene, model_info(name), "exact", name)
         except UnsupportedSceneError:
             continue
-        return name
-    return DEFAULT_MODEL
+        if not sup.warnings:
+            return name
+        supported.append(name)
+    return supported[0] if supported else DEFAULT_MODEL
 
 
 def load_gns(model: str | Path = DEFAULT_MODEL):
