@@ -1,4 +1,5 @@
 """``diffgns invert`` end to end on a scene that is not a column collapse (small, float64)."""
+import dataclasses
 import json
 from pathlib import Path
 
@@ -148,11 +149,19 @@ def test_default_model_is_the_most_accurate_shipped_model_that_supports_the_scen
         default_model,
         model_info,
     )
+    from diffgns.scene.families import random_scene
     from diffgns.scene.files import load_scene
 
     assert DEFAULT_MODEL == MODELS_BY_ACCURACY[0] == "gns_cg16_pfn"
     info = model_info(DEFAULT_MODEL)
     assert default_model(column_scene(2.0, 30.0, 16, info)) == "gns_cg16_pfn"
     assert default_model(load_scene(ROOT / "scenes/sand_into_obstacle.toml")) == "gns_columns"
+    # at the 16-cell resolution, what gns_cg16_pfn only warns about goes to gns_general
+    obstacle = dataclasses.replace(load_scene(ROOT / "scenes/sand_into_obstacle.toml"),
+                                   dx=0.1 / 16)
+    assert default_model(obstacle) == "gns_general"
+    left, right = (random_scene("columns", s, boxes=((0.8, 0.35),)) for s in (0, 1))
+    assert left.bodies[0].shape.lower[0] == 0 and right.bodies[0].shape.upper[0] == 0.8
+    assert (default_model(left), default_model(right)) == ("gns_cg16_pfn", "gns_general")
     ex = (ROOT / "examples/column_collapse_inverse.py").read_text()
     assert "default=str(DEFAULT_MODEL)" in ex and "default ``gns_cg16_pfn``" in ex

@@ -128,3 +128,21 @@ def test_held_out_compositions_in_a_longer_box_keep_their_box_in_the_recipe(tmp_
     assert random_sample("squares", seeds[1])[0].domain != redrawn[1].domain
     with pytest.raises(InputError, match="different recipe"):
         generate_families(out, ["column_hit", "squares"], 2, 3, seed=5, progress=False)
+
+
+def test_a_model_trained_on_granular_data_records_its_mpm_resolution(tmp_path):
+    """train_loop reads dx and particles per cell from the datasets' recipes (the general
+    model's support check needs them: without dx it accepted 8-cell scenes); datasets of two
+    resolutions are refused."""
+    from diffgns.graph.train_loop import _granular_resolution
+
+    def fake(name, **ranges):
+        with h5py.File(tmp_path / name, "w") as f:
+            f.attrs["recipe"] = json.dumps({"ranges": ranges})
+        return tmp_path / name
+
+    a = fake("a.h5", dx=0.1 / 16, particles_per_cell=4, boxes=[[0.8, 0.35]])
+    b = fake("b.h5", dx=0.1 / 16, particles_per_cell=4)
+    assert _granular_resolution([a, b]) == {"dx": 0.1 / 16, "particles_per_cell": 4}
+    with pytest.raises(InputError, match="different MPM resolutions"):
+        _granular_resolution([a, fake("c.h5", dx=0.1 / 8, particles_per_cell=4)])

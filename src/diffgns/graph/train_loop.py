@@ -114,6 +114,20 @@ def average_models(paths, out: str | Path) -> Path:
     return Path(out)
 
 
+def _granular_resolution(paths) -> dict:
+    """``dx`` (m) and ``particles_per_cell`` of the MPM that made the scene-family datasets
+    ``paths`` (their recipes), so that :func:`~diffgns.graph.support.check_scene` refuses a
+    scene at another resolution; datasets of different resolutions are refused."""
+    from diffgns.io.families_data import read_ranges
+
+    got = {str(p): {k: read_ranges(p)[k] for k in ("dx", "particles_per_cell")}
+           for p in paths}
+    if len({tuple(v.values()) for v in got.values()}) > 1:
+        raise InputError("--data", f"the datasets were made at different MPM resolutions "
+                         f"({got})", "train on data of one resolution")
+    return next(iter(got.values()))
+
+
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     """Load training data and build the GNS whose normaliser matches it. The data fix the
     model's dimension (2D or 3D: the axes of the union of the training boxes); datasets of
@@ -140,6 +154,8 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     # What the data came from (e.g. the MPM resolution a hybrid must pair this model with).
     stats["source"] = {k: meta[k] for k in ("kind", "width", "cells_across", "dt", "bounds")
                        if k in meta}
+    if meta.get("kind") == "granular":  # the MPM resolution, from the recipe in the files
+        stats["source"].update(_granular_resolution(train_paths))
     # every training box: the network saw each trajectory's own walls (graph.geometry), so
     # the model supports those boxes (graph.support)
     stats["source"]["boxes"] = sorted({tuple(map(tuple, np.asarray(t.bounds, float).tolist()))
