@@ -9,7 +9,9 @@ Rolls the model out from the first ``history + 1`` frames of every trajectory of
 runout from the back of the initial mass in the flow's direction (``flow_runout``), final
 position error relative to the mean displacement (per node, and under the best one-to-one
 matching of the final nodes: ``matched``, correspondence-free, reported beside), inside the
-domain, finite, final kinetic energy, and the positions the rollout clamped into the box
+domain, finite, final kinetic energy (and "moving": cases still moving where the MPM has come
+to rest, :data:`~diffgns.graph.evaluate.REST_KE_PER_KG`), and the positions the rollout
+clamped into the box
 (``clamped``: count, in how many cases; a clamped position left the domain, so the family
 then misses the targets even when ``outside`` is 0).
 :func:`~diffgns.graph.evaluate.per_family` gives the table per family (from the dataset's
@@ -67,7 +69,8 @@ def main(argv=None) -> None:
                       f"GNS {row['speedup_vs_mpm_stable']:.1f}x cheaper")
     table = per_family(res["rows"], families)
     run.print(f"{'family':<12} {'cases':>5} {'runout mean/max':>16} {'pos err mean/max':>17} "
-              f"{'matched mean/max':>17} {'outside':>7} {'clamped':>12} {'NaN':>4} {'met':>4}")
+              f"{'matched mean/max':>17} {'outside':>7} {'clamped':>12} {'NaN':>4} {'moving':>6} "
+              f"{'met':>4}")
     m = "final_matched_error_rel_displacement"
     for fam, t in table.items():
         run.print(f"{fam:<12} {t['cases']:>5} "
@@ -77,7 +80,7 @@ def main(argv=None) -> None:
                   f"{t.get(m + '_mean', np.nan):>8.3f}/{t.get(m + '_max', np.nan):<8.3f} "
                   f"{t['outside_domain']:>7} {t['clamped_positions']:>5} in "
                   f"{t['clamped_cases']:>3} "
-                  f"{t['not_finite']:>4} {str(t['met']):>4}")
+                  f"{t['not_finite']:>4} {t['moving_when_ref_at_rest']:>6} {str(t['met']):>4}")
     run.print(f"targets per case: {TARGETS}")
     if args.timed:
         for fam in dict.fromkeys(families):

@@ -94,3 +94,33 @@ def test_score_reports_the_matched_error_beside_the_per_node_one():
     bare = {k: v for k, v in row.items() if not k.startswith("final_matched")}
     t2 = per_family([row, bare], ["squares", "squares"])
     assert "final_matched_error_rel_displacement_mean" not in t2["squares"]
+
+
+def test_score_flags_a_rollout_still_moving_where_the_reference_is_at_rest():
+    """The reference's last-frame kinetic energy is reported; a prediction above the rest
+    threshold where the reference is below it is flagged and fails the family's ``met``; a
+    prediction at rest, or a reference still moving, is not flagged."""
+    from diffgns.graph.evaluate import REST_KE_PER_KG, per_family, score
+    from diffgns.trajectory import Trajectory
+
+    x0 = np.stack(np.meshgrid(np.linspace(0.1, 0.2, 5), np.linspace(0.0, 0.1, 4)),
+                  -1).reshape(-1, 2)
+    dt = 0.01
+
+    def traj(last_speed):  # three frames; the last step at ``last_speed`` m/s along x
+        p = np.stack([x0, x0 + 0.05, x0 + 0.05 + [last_speed * dt, 0.0]])
+        return Trajectory(positions=p, velocities=np.zeros_like(p),
+                          particle_type=np.zeros(len(x0), int), material=np.full(len(x0), 0.5),
+                          frame_dt=dt, bounds=((0.0, 0.8), (0.0, 0.35)))
+
+    rest, slow, moving = 0.0, 0.5 * np.sqrt(2 * REST_KE_PER_KG), 3 * np.sqrt(2 * REST_KE_PER_KG)
+    row = score(traj(moving), traj(rest))
+    assert row["final_kinetic_energy_ref_per_kg"] == pytest.approx(0.0, abs=1e-12)
+    assert row["final_kinetic_energy_per_kg"] == pytest.approx(9 * REST_KE_PER_KG, rel=1e-3)
+    assert row["moving_when_ref_at_rest"]
+    assert not score(traj(slow), traj(rest))["moving_when_ref_at_rest"]
+    assert not score(traj(moving), traj(moving))["moving_when_ref_at_rest"]
+    ok = dict(row, flow_runout_rel_error=0.0, final_position_error_rel_displacement=0.0)
+    t = per_family([ok, dict(ok, moving_when_ref_at_rest=False)], ["squares", "columns"])
+    assert t["squares"]["moving_when_ref_at_rest"] == 1 and not t["squares"]["met"]
+    assert t["columns"]["met"] and t["all"]["moving_when_ref_at_rest"] == 1
