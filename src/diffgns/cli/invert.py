@@ -182,9 +182,9 @@ def register(sub) -> None:
                    help="simulator of the forward model (default mpm)")
     p.add_argument("--model", default=None,
                    help="GNS model folder or shipped name (gns/hybrid; default: the most "
-                   "accurate shipped model that supports the scene without a warning: gns_cg16_pfn for "
-                   "columns against the left wall, gns_general for obstacles, moving bodies "
-                   "or the right wall); "
+                   "accurate shipped model that supports the scene without a warning: "
+                   "gns_cg16_pfn for columns against the left wall, gns_general for "
+                   "obstacles, moving bodies or the right wall); "
                    "with the MPM: observe as this model does")
     p.add_argument("--history", default="auto", choices=["auto", "observed", "mpm"],
                    help="GNS initial frames: the observed ones, or a differentiable MPM "
