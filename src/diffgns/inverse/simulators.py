@@ -42,12 +42,12 @@ __all__ = ["Column", "ColumnCase", "DEFAULT_MODEL", "GNSSimulator", "HybridSimul
            "default_model", "gns_simulator", "hybrid_simulator", "load_gns", "model_info",
            "mpm_simulator"]
 
-#: shipped particle GNS models, most accurate first (held-out runout error, mean / max, from
-#: their model cards: gns_cg16_pfn 1.4% / 4.4%, gns_cg16_pf 3.2% / 9.5%, gns_cg16 5.5% /
-#: 14.8%, gns_columns 5.3% / 17.3%, gns_small 8.5% / 21.1%)
-#: shipped GNS models, most accurate first on the scenes each was trained for: gns_cg16_pfn on
-#: columns against the left wall, gns_general on every granular family (default_model
-#: prefers the first with no warning for the scene)
+#: shipped particle GNS models, most accurate first on the scenes each was trained for
+#: (held-out runout error, mean / max, from their model cards: gns_cg16_pfn 1.4% / 4.4% on
+#: columns against the left wall; gns_general, every granular family, 8.0% / 32.9%;
+#: gns_cg16_pf 3.2% / 9.5%, gns_cg16 5.5% / 14.8%, gns_columns 5.3% / 17.3%, gns_small
+#: 8.5% / 21.1% on columns); :func:`default_model` prefers the first with no warning for
+#: the scene
 MODELS_BY_ACCURACY = ("gns_cg16_pfn", "gns_general", "gns_cg16_pf", "gns_cg16", "gns_columns",
                       "gns_small")
 DEFAULT_MODEL = MODELS_BY_ACCURACY[0]  # a shipped model (diffgns.models.model_path)
