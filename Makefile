@@ -123,28 +123,25 @@ data/granular_%.h5: data/granular_%.shard-0-of-2.h5 data/granular_%.shard-1-of-2
 # (seed 4). `make -j2 granular-test-data` draws two at once.
 granular-test-data: data/granular_test.h5 data/granular_longbox.h5 data/granular_compose.h5
 
-data/granular_test.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n $(GRANULAR_VALID_N) --seed 2 --out $@
+# One draw of the three sets: $(1) the file suffix, $(2) $(3) $(4) the seeds of the test,
+# longer-box and composition sets.
+define GRANULAR_HELDOUT
+data/granular_test$(1).h5: $$(VENV)/.installed-test
+	nice -n 19 $$(GRANULAR) --n $$(GRANULAR_VALID_N) --seed $(2) --out $$@
 
-data/granular_longbox.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n 12 --seed 3 --boxes 1.4x0.35 --out $@
+data/granular_longbox$(1).h5: $$(VENV)/.installed-test
+	nice -n 19 $$(GRANULAR) --n 12 --seed $(3) --boxes 1.4x0.35 --out $$@
 
-data/granular_compose.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n 12 --seed 4 --families column_pair column_hit --out $@
+data/granular_compose$(1).h5: $$(VENV)/.installed-test
+	nice -n 19 $$(GRANULAR) --n 12 --seed $(4) --families column_pair column_hit --out $$@
+endef
+$(eval $(call GRANULAR_HELDOUT,,2,3,4))
 
 # A second held-out draw of the same three sets (seeds 5, 6, 7), for a model frozen after the
 # first draw was scored (gns_general, 2026-12-06): `make -j2 granular-fresh-data`.
 .PHONY: granular-fresh-data
 granular-fresh-data: data/granular_test2.h5 data/granular_longbox2.h5 data/granular_compose2.h5
-
-data/granular_test2.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n $(GRANULAR_VALID_N) --seed 5 --out $@
-
-data/granular_longbox2.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n 12 --seed 6 --boxes 1.4x0.35 --out $@
-
-data/granular_compose2.h5: $(VENV)/.installed-test
-	nice -n 19 $(GRANULAR) --n 12 --seed 7 --families column_pair column_hit --out $@
+$(eval $(call GRANULAR_HELDOUT,2,5,6,7))
 
 # issue 24: small 3D axisymmetric collapses for the 3D GNS (R0 = 5 cm, 4 cells across R0,
 # 8 particles per cell: 200-1,700 particles; 0.6 s of flow). Training set on a grid of
