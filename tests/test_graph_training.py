@@ -191,6 +191,31 @@ def test_unrolled_loss_is_the_mean_of_one_step_losses_along_the_models_rollout()
         TrainConfig(unroll=0)
 
 
+def test_unrolled_loss_traces_one_frame_for_any_k_and_keeps_its_value():
+    """The K loss frames are one scanned (rematerialised) frame: the traced program of
+    K = 3 and K = 6 has the same number of equations (a Python loop grows with K, and
+    compiled for minutes at K = 8), and K = 3's value is the mean of the one-step losses
+    after 0, 1 and 2 frames of the model's own rollout (the push-forward losses)."""
+    trajs = synthetic(1)
+    gns = small_gns(trajs)
+    t = trajs[0]
+    params = _init(gns, trajs)
+    nbrs = gns.allocate(t.positions[5])
+    rest = (t.particle_type, t.material, nbrs, jax.random.PRNGKey(7))
+
+    def loss(p, K, w):
+        return window_loss(gns, p, w, *rest, 0, 0.0, loss_frames=K)[0]
+
+    def n_eqns(K):
+        return len(jax.make_jaxpr(lambda p: loss(p, K, t.positions[: 6 + K]))(params).eqns)
+
+    assert abs(n_eqns(3) - n_eqns(6)) <= 2  # a Python loop adds dozens per frame
+    three = float(jax.jit(lambda p: loss(p, 3, t.positions[:9]))(params))
+    pieces = [float(window_loss(gns, params, t.positions[: 7 + u], *rest, u, 0.0)[0])
+              for u in range(3)]
+    assert three == pytest.approx(np.mean(pieces), rel=1e-5)
+
+
 def test_unrolled_training_draws_windows_long_enough_and_records_the_option(tmp_path, capsys):
     """diffgns.graph.train_loop.train with unroll 3 and push-forward 1: the sampler's
     windows fit the loss (a wrong length raises), the run trains to a finite loss and

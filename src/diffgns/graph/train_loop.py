@@ -120,8 +120,10 @@ def _granular_resolution(paths) -> dict:
     scene at another resolution; datasets of different resolutions are refused."""
     from diffgns.io.families_data import read_ranges
 
-    got = {str(p): {k: read_ranges(p)[k] for k in ("dx", "particles_per_cell")}
-           for p in paths}
+    got = {}
+    for p in paths:
+        ranges = read_ranges(p)
+        got[str(p)] = {k: ranges[k] for k in ("dx", "particles_per_cell")}
     if len({tuple(v.values()) for v in got.values()}) > 1:
         raise InputError("--data", f"the datasets were made at different MPM resolutions "
                          f"({got})", "train on data of one resolution")
