@@ -43,6 +43,7 @@ import hashlib
 import json
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +52,13 @@ from protocol import warm_up_jax
 
 from diffgns import MPM, rollout_jit
 from diffgns.graph.train_loop import load_model
-from diffgns.hybrid.compare import column_scene, make_hybrid, model_cells, score_against
+from diffgns.hybrid.compare import (
+    column_scene,
+    family_scene,
+    make_hybrid,
+    model_cells,
+    score_against,
+)
 from diffgns.hybrid.simulator import HybridParams, Schedule
 from diffgns.timing import block, interleave, measure
 
@@ -107,14 +114,44 @@ def schedule_name(sched: Schedule) -> str:
     return ":".join([name, *opts])
 
 
-def parse_case(spec: str) -> tuple[float, float]:
-    """``"a:phi"`` -> (aspect ratio, friction angle in degrees)."""
+@dataclass(frozen=True)
+class Case:
+    """A case of the front: the column collapse of the models' training data (``a``, ``phi``:
+    aspect ratio, friction angle in degrees) or a random family scene (``family``, ``seed``:
+    :func:`diffgns.hybrid.compare.family_scene`, the same scene at every resolution)."""
+
+    spec: str  # "1.75:27.5" or "squares:9100000"
+    a: float = 0.0
+    phi: float = 0.0
+    family: str = ""
+    seed: int = 0
+
+    def scene(self, cells: int, info: dict):
+        """The case's scene with the MPM at ``cells`` cells (across the column; per 0.1 m
+        for a family scene)."""
+        if self.family:
+            return family_scene(self.family, self.seed, cells)
+        return column_scene(self.a, self.phi, cells, info)
+
+
+def parse_case(spec: str) -> Case:
+    """``"a:phi"`` (a column of the models' training data) or ``"family:seed"`` (a random
+    scene of :data:`diffgns.scene.families.ALL_FAMILIES`)."""
+    from diffgns.scene.families import ALL_FAMILIES
+
+    head, _, tail = spec.partition(":")
+    if head in ALL_FAMILIES:
+        if not tail.isdigit():
+            raise argparse.ArgumentTypeError(f"case {spec!r}: use family:seed with an integer "
+                                             "seed >= 0, e.g. squares:9100000")
+        return Case(spec, family=head, seed=int(tail))
     try:
         a, phi = (float(v) for v in spec.split(":"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"case {spec!r}: use aspect_ratio:friction_angle, "
-                                         "e.g. 1.75:27.5") from None
-    return a, phi
+        raise argparse.ArgumentTypeError(
+            f"case {spec!r}: use aspect_ratio:friction_angle (e.g. 1.75:27.5) or family:seed "
+            f"with a family of {ALL_FAMILIES} (e.g. squares:9100000)") from None
+    return Case(spec, a=a, phi=phi)
 
 
 # ---------------------------------------------------------------- simulator calls
@@ -135,16 +172,17 @@ def mpm_source_hash() -> str:
     return h.hexdigest()[:12]
 
 
-def reference(a: float, phi: float, cells: int, info: dict, n_frames: int, stride: int,
+def reference(case: Case, cells: int, info: dict, n_frames: int, stride: int,
               cache: Path | None) -> tuple[np.ndarray, dict]:
     """(positions (n_frames+1, N, 2) on GNS frames, record) of the untimed reference MPM, from
     ``cache`` when it holds this case (keyed by the scene, the frames and the hash of the MPM's
     source, :func:`mpm_source_hash`)."""
-    scene = column_scene(a, phi, cells, info)
-    key = hashlib.sha1(json.dumps([a, phi, cells, n_frames, stride, repr(scene.domain),
+    scene = case.scene(cells, info)
+    key = hashlib.sha1(json.dumps([case.spec, cells, n_frames, stride, repr(scene),
                                    scene.n_particles, scene.substeps, mpm_source_hash()]
                                   ).encode()).hexdigest()[:12]
-    path = None if cache is None else cache / f"ref_a{a:g}_phi{phi:g}_c{cells}_{key}.npz"
+    tag = case.spec.replace(":", "_")
+    path = None if cache is None else cache / f"ref_{tag}_c{cells}_{key}.npz"
     if path is not None and path.exists():
         return np.load(path)["positions"], {"cache": str(path), "cached": True, "key": key}
     sim = MPM(scene)
@@ -203,8 +241,10 @@ def main(argv=None):
                     default=[parse_schedule(x) for x in DEFAULT_OTHER],
                     help=f"schedules of the other models (default {' '.join(DEFAULT_OTHER)})")
     ap.add_argument("--cases", nargs="+", type=parse_case,
-                    default=[parse_case(c) for c in CASES], metavar="A:PHI",
-                    help="held-out columns: aspect ratio:friction angle (deg)")
+                    default=[parse_case(c) for c in CASES], metavar="A:PHI|FAMILY:SEED",
+                    help="held-out columns of the models' training data (aspect ratio:"
+                         "friction angle, deg) or random family scenes (family:seed; "
+                         "resolutions are then cells per 0.1 m)")
     ap.add_argument("--frames", type=int, default=125, help="GNS frames (0.625 s)")
     ap.add_argument("--reference-cells", type=int, default=32)
     ap.add_argument("--reference-cache", default=str(DEFAULT_CACHE),
@@ -239,46 +279,46 @@ def main(argv=None):
     own_cells = max(args.mpm_cells)  # the resolution of the learned-error reference
     cache = Path(args.reference_cache) if args.reference_cache else None
     if args.prepare_references:
-        for a, phi in args.cases:
-            _, rec = reference(a, phi, args.reference_cells, info0, args.frames, stride, cache)
-            run.print(f"reference a = {a:g}, phi = {phi:g}: {rec}")
+        for case in args.cases:
+            _, rec = reference(case, args.reference_cells, info0, args.frames, stride, cache)
+            run.print(f"reference {case.spec}: {rec}")
         return
     calls, syncs, firsts, rows, refs = {}, {}, {}, [], []
-    for a, phi in args.cases:
-        ref, rec = reference(a, phi, args.reference_cells, info0, args.frames, stride, cache)
-        refs.append(dict(case=[a, phi], cells=args.reference_cells, **rec))
-        run.print(f"case a = {a:g}, phi = {phi:g}: reference MPM {args.reference_cells} cells "
+    for case in args.cases:
+        ref, rec = reference(case, args.reference_cells, info0, args.frames, stride, cache)
+        refs.append(dict(case=case.spec, cells=args.reference_cells, **rec))
+        run.print(f"case {case.spec}: reference MPM {args.reference_cells} cells "
                   + ("from the cache" if rec["cached"] else "computed"), tag=False)
         case_rows, positions = [], {}
         for cells in args.mpm_cells:
             label = f"MPM {cells} cells"
-            name = f"{label} @ {a:g}/{phi:g}"
-            calls[name] = mpm_call(column_scene(a, phi, cells, info0), args.frames, stride)
+            name = f"{label} @ {case.spec}"
+            calls[name] = mpm_call(case.scene(cells, info0), args.frames, stride)
             syncs[name] = block
             firsts[name], x = measure(calls[name])
             positions[name] = np.asarray(x)
-            case_rows.append(dict(name=name, case=[a, phi], family="MPM", label=label,
+            case_rows.append(dict(name=name, case=case.spec, family="MPM", label=label,
                                   cells=cells, mpm_fraction=1.0))
         for i, (mname, (gns, gp, info)) in enumerate(models.items()):
-            scene = column_scene(a, phi, model_cells(info), info)
+            scene = case.scene(model_cells(info), info)
             for sched in (args.schedules if i == 0 else args.other_schedules):
                 label = f"{sched.label} [{mname}]"
-                name = f"{label} @ {a:g}/{phi:g}"
+                name = f"{label} @ {case.spec}"
                 calls[name], syncs[name], firsts[name], res = hybrid_call(
                     scene, gns, gp, info, sched, args.frames)
                 positions[name] = np.asarray(res.positions)
-                case_rows.append(dict(name=name, case=[a, phi],
+                case_rows.append(dict(name=name, case=case.spec,
                                       family="GNS" if sched.mpm_frames == 0 else "hybrid",
                                       label=label, model=mname, own_cells=model_cells(info),
                                       mpm_fraction=res.mpm_fraction, **res.clamp_summary()))
-        own = positions[f"MPM {own_cells} cells @ {a:g}/{phi:g}"]
+        own = positions[f"MPM {own_cells} cells @ {case.spec}"]
         for r in case_rows:  # errors: against the reference and the own-resolution MPM
             x = positions[r["name"]]
             r.update(score_against(x, ref))
             o = score_against(x, own)
             r.update(own_mpm_runout_error=o["runout_error"],
                      own_mpm_position_error_m=o["mean_position_error_m"])
-            run.print(f"{r['label']:52s} a={a:g} phi={phi:g} error "
+            run.print(f"{r['label']:52s} {case.spec} error "
                       f"{1e3 * r['mean_position_error_m']:.2f} mm, first call "
                       f"{firsts[r['name']].wall_s:.1f} s", tag=False)
         rows += case_rows
@@ -292,7 +332,7 @@ def main(argv=None):
                  first_call_s=t["first_call_s"])
     table = aggregate(rows, rounds)
     target = check_target(table)
-    payload = dict(cases=args.cases, frames=args.frames, own_mpm_cells=own_cells,
+    payload = dict(cases=[c.spec for c in args.cases], frames=args.frames, own_mpm_cells=own_cells,
                    reference=refs, models=list(models),
                    schedules=[s.label for s in args.schedules],
                    other_schedules=[s.label for s in args.other_schedules],

@@ -73,9 +73,33 @@ def test_bad_schedule_names_are_refused(bad):
 
 
 def test_case_names():
-    assert hp.parse_case("1.75:27.5") == (1.75, 27.5)
-    with pytest.raises(argparse.ArgumentTypeError):
-        hp.parse_case("1.75")
+    c = hp.parse_case("1.75:27.5")
+    assert (c.a, c.phi, c.family) == (1.75, 27.5, "")
+    f = hp.parse_case("obstacles:9100001")
+    assert (f.family, f.seed) == ("obstacles", 9100001)
+    for bad in ("1.75", "squares:x", "squares:-1", "sqaures:3"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            hp.parse_case(bad)
+
+
+def test_family_case_is_one_scene_at_every_resolution():
+    """A family case keeps its box, bodies and obstacles when the MPM is refined (the front's
+    references and coarser MPMs simulate the same scene); only dx and the particles change."""
+    from diffgns.hybrid.compare import model_cells
+
+    case = hp.parse_case("obstacles:9100001")
+    scenes = {c: case.scene(c, {}) for c in (8, 16, 32)}
+    base = scenes[16]
+    assert base == hp.parse_case("obstacles:9100001").scene(16, {})
+    for c, s in scenes.items():
+        assert s.dx == pytest.approx(0.1 / c)
+        assert (s.domain, s.obstacles, s.walls) == (base.domain, base.obstacles, base.walls)
+        assert [b.shape for b in s.bodies] == [b.shape for b in base.bodies]
+        assert s.n_particles == base.n_particles * (c / 16) ** 2
+    assert model_cells({"source": {"dx": 0.1 / 16}}) == 16
+    assert model_cells({"source": {"cells_across": 12, "dx": 1.0}}) == 12
+    with pytest.raises(ValueError, match="whole number"):
+        model_cells({"source": {"dx": 0.03}})
 
 
 def _row(name, label, family, a, err, own_cells=None):

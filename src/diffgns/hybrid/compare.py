@@ -34,8 +34,10 @@ def lagrangian_map(x0: np.ndarray, x0_ref: np.ndarray) -> np.ndarray:
     """(N, k) indices of the k reference particles nearest to each particle at t = 0, with
     k = round(N_ref / N) (at least 1): the reference material of each particle."""
     k = max(1, int(round(len(x0_ref) / len(x0))))
-    d2 = ((x0[:, None] - x0_ref[None]) ** 2).sum(-1)
-    return np.argsort(d2, axis=1)[:, :k]
+    rows = max(1, 2**26 // max(1, len(x0_ref)))  # blocks of ~0.5 GB of squared distances
+    return np.concatenate([
+        np.argsort(((x0[i:i + rows, None] - x0_ref[None]) ** 2).sum(-1), axis=1)[:, :k]
+        for i in range(0, len(x0), rows)])
 
 
 def position_error(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
@@ -63,13 +65,36 @@ def _timing(t: dict) -> dict:
                 cpu_seconds=t["cpu_median_s"], compile_s=t["compile_s"])
 
 
+#: length (m) that a "cells" resolution counts cells over for random family scenes: the
+#: column width of every shipped column model (and FamilyRanges.dx = REFERENCE_LENGTH / 16)
+REFERENCE_LENGTH = 0.1
+
+
 def model_cells(info: dict) -> int:
-    """MPM resolution (cells across the training column) of a GNS model's training data."""
+    """MPM resolution of a GNS model's training data: cells across the training column, or,
+    for a model of random family scenes (``source.dx`` only), cells per
+    :data:`REFERENCE_LENGTH` (0.1 m: 16 for dx = 6.25 mm)."""
     src = info.get("source") or {}
-    if "cells_across" not in src:
-        raise ValueError("the model folder records no source.cells_across (the MPM resolution "
-                         "of its training data)")
-    return int(src["cells_across"])
+    if "cells_across" in src:
+        return int(src["cells_across"])
+    if "dx" in src:
+        cells = REFERENCE_LENGTH / float(src["dx"])
+        if abs(cells - round(cells)) > 1e-6:
+            raise ValueError(f"the model's MPM cell size {src['dx']} m is not "
+                             f"{REFERENCE_LENGTH} m over a whole number of cells")
+        return int(round(cells))
+    raise ValueError("the model folder records neither source.cells_across nor source.dx "
+                     "(the MPM resolution of its training data)")
+
+
+def family_scene(family: str, seed: int, cells: int):
+    """The random scene ``family``:``seed`` (:func:`diffgns.scene.families.random_scene`,
+    default ranges: drawn on its own 6.25 mm lattice, so the same bodies, obstacles and box at
+    every resolution) with the MPM at ``cells`` cells per :data:`REFERENCE_LENGTH` (0.1 m)."""
+    from diffgns.scene.families import random_scene
+
+    scene = random_scene(family, seed)
+    return scene.replace(dx=REFERENCE_LENGTH / cells)
 
 
 def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int, info: dict):
