@@ -2,12 +2,14 @@
 
     python benchmarks/hybrid_pareto.py [--models gns_cg16_pf gns_cg16 ...]
         [--schedules GNS K2M5 K4M4 K8M2 ...] [--other-schedules GNS K4M4]
-        [--cases 0.75:37.5 1.75:27.5 2.75:27.5] [--rounds 3] [--threads both]
+        [--cases 0.75:37.5 1.75:27.5 2.75:27.5 | squares:9100000 ...] [--rounds 3]
+        [--threads both]
 
 On held-out column collapses (aspect ratios and friction angles not in the GNS training
-set), every simulator is scored against a fine MPM reference (``--reference-cells`` cells
-across the column): final runout error and the material-point position error (mean over
-particles and frames; see ``diffgns.hybrid.compare``). The reference is not timed; it is kept
+set) or random family scenes (``--cases squares:9100000 ...``: one generator scene at every
+resolution, cells per 0.1 m), every simulator is scored against a fine MPM reference
+(``--reference-cells`` cells): final runout error and the material-point position error
+(mean over particles and frames; see ``diffgns.hybrid.compare``). The reference is not timed; it is kept
 in ``--reference-cache`` (a file per case, resolution and frame count), so that a quiet-machine
 run need not spend its window on it. Every run is also scored against the MPM at the finest
 of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16*`` were trained to emulate and that
