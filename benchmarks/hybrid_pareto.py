@@ -5,18 +5,18 @@
         [--cases 0.75:37.5 1.75:27.5 2.75:27.5 | squares:9100000 ...] [--rounds 3]
         [--threads both]
 
-On held-out column collapses (aspect ratios and friction angles not in the GNS training
-set) or random family scenes (``--cases squares:9100000 ...``: one generator scene at every
+On held-out column collapses (aspect ratios and friction angles not in the GNS training set)
+or random family scenes (``--cases squares:9100000 ...``: one generator scene at every
 resolution, cells per 0.1 m), every simulator is scored against a fine MPM reference
 (``--reference-cells`` cells): final runout error and the material-point position error
-(mean over particles and frames; see ``diffgns.hybrid.compare``). The reference is not timed; it is kept
-in ``--reference-cache`` (a file per case, resolution and frame count), so that a quiet-machine
-run need not spend its window on it. Every run is also scored against the MPM at the finest
-of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16*`` were trained to emulate and that
-their hybrids run): for those models that isolates the learned error, which the hybrid's MPM
-frames correct, from the discretisation error that they share with that MPM. A second Pareto
-front is drawn on these "own-MPM" errors (the 16-cell MPM itself, with zero error, is not a
-candidate).
+(mean over particles and frames; see ``diffgns.hybrid.compare``). The reference is not
+timed; it is kept in ``--reference-cache`` (a file per case, resolution and frame count), so
+that a quiet-machine run need not spend its window on it. Every run is also scored against
+the MPM at the finest of ``--mpm-cells`` (16 cells: the simulator ``gns_cg16*`` were trained
+to emulate and that their hybrids run): for those models that isolates the learned error,
+which the hybrid's MPM frames correct, from the discretisation error that they share with
+that MPM. A second Pareto front is drawn on these "own-MPM" errors (the 16-cell MPM itself,
+with zero error, is not a candidate).
 
 Timing (``benchmarks/protocol.py``, ``diffgns.timing``): every simulator of every case (the
 MPMs alone, the GNS alone, the hybrid schedules; built by ``diffgns.hybrid.compare``, the
