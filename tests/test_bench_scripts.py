@@ -8,10 +8,12 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import granular_heldout as gh  # noqa: E402
+import granular_node_tracers as gnt  # noqa: E402
 import granular_truth_spread as gts  # noqa: E402
 import hybrid_families as hf  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
@@ -201,3 +203,24 @@ def test_meshnet_drift_windows_and_the_worst_mean_flow_node(tmp_path):
     assert d["worst_mean_velocity_cfd"] == pytest.approx(cfd_mean.tolist(), rel=1e-6)
     assert d["worst_mean_velocity_model"] == pytest.approx((cfd_mean + [0.3, 0]).tolist(),
                                                           rel=1e-5)
+
+
+def test_tracers_follow_the_local_motion_not_a_far_mean():
+    """A tracer moves with the particles around it: exactly with a uniform translation, and
+    in two blocks sliding apart each tracer follows its own block (a mean over all the
+    particles would not move at all)."""
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(10)), -1).reshape(-1, 2) * 0.005
+    left, right = g, g + [0.2, 0.0]
+    x0 = np.concatenate([left, right])
+    T, v = 20, np.array([0.003, -0.001])
+    shift = np.arange(T)[:, None, None] * v
+    x = x0[None] + shift
+    start = x0[rng.choice(len(x0), 7, replace=False)]
+    np.testing.assert_allclose(gnt.tracers(x, start, 0.005, 24), start[None] + shift,
+                               atol=1e-12)
+    sign = np.where(np.arange(len(x0)) < len(left), -1.0, 1.0)[None, :, None]
+    x = x0[None] + sign * shift  # the blocks move apart; their joint mean stays put
+    start = np.array([left.mean(0), right.mean(0)])
+    tr = gnt.tracers(x, start, 0.005, 24)
+    np.testing.assert_allclose(tr[-1], start + [-(T - 1) * v, (T - 1) * v], atol=1e-9)
