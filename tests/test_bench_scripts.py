@@ -87,6 +87,7 @@ def test_case_names():
 def test_family_case_is_one_scene_at_every_resolution():
     """A family case keeps its box, bodies and obstacles when the MPM is refined (the front's
     references and coarser MPMs simulate the same scene); only dx and the particles change."""
+    from diffgns.errors import SceneError
     from diffgns.hybrid.compare import model_cells
 
     case = hp.parse_case("obstacles:9100001")
@@ -98,6 +99,10 @@ def test_family_case_is_one_scene_at_every_resolution():
         assert (s.domain, s.obstacles, s.walls) == (base.domain, base.obstacles, base.walls)
         assert [b.shape for b in s.bodies] == [b.shape for b in base.bodies]
         assert s.n_particles == base.n_particles * (c / 16) ** 2
+    with pytest.raises(ValueError, match="integer >= 1"):
+        case.scene(0, {})
+    with pytest.raises(SceneError, match="whole number"):  # 0.35 m is 24.5 cells of 1/70 m
+        hp.parse_case("squares:9100000").scene(7, {})
     assert model_cells({"source": {"dx": 0.1 / 16}}) == 16
     assert model_cells({"source": {"cells_across": 12, "dx": 1.0}}) == 12
     with pytest.raises(ValueError, match="whole number"):

@@ -93,8 +93,11 @@ def family_scene(family: str, seed: int, cells: int):
     every resolution) with the MPM at ``cells`` cells per :data:`REFERENCE_LENGTH` (0.1 m)."""
     from diffgns.scene.families import random_scene
 
+    if not (isinstance(cells, (int, np.integer)) and cells >= 1):
+        raise ValueError(f"family_scene: cells = {cells!r} must be an integer >= 1 (cells per "
+                         f"{REFERENCE_LENGTH} m)")
     scene = random_scene(family, seed)
-    return scene.replace(dx=REFERENCE_LENGTH / cells)
+    return scene.replace(dx=REFERENCE_LENGTH / cells)  # the Scene refuses a box not in cells
 
 
 def column_scene(aspect_ratio: float, friction_angle: float, cells_across: int, info: dict):
