@@ -83,6 +83,7 @@ def test_sharded_clamp_counts_equal_and_padding_never_counted(x64):
     assert float(fa.clamp.shift[1]) == pytest.approx(0.004, abs=1e-6)
 
 
+@pytest.mark.slow  # the default suite checks a sharded gradient in the shuffled test, devices=2
 def test_sharded_gradient_equals_one_device_gradient(x64):
     two_devices()
     scene = column_scene(1.0, cells_across=7)

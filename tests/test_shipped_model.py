@@ -68,8 +68,10 @@ def test_long_rollout_comes_to_rest_inside_the_box(model, cells_across):
     assert x[-1, :, 0].max() > 0.15  # it did collapse (column edge at 0.1 m)
 
 
-@pytest.mark.parametrize("name", ["gns_columns3d", "gns_columns3d_fast",
-                                  "gns_columns3d_stride4"])
+# the default suite rolls the first model out; the two others, same code path, with -m slow
+@pytest.mark.parametrize("name", ["gns_columns3d",
+                                  pytest.param("gns_columns3d_fast", marks=pytest.mark.slow),
+                                  pytest.param("gns_columns3d_stride4", marks=pytest.mark.slow)])
 def test_3d_long_rollout_comes_to_rest_inside_the_box(name):
     """Each 3D model, 3x its training horizon or more (360 GNS frames of 5 or 10 ms;
     training trajectories have 120 or 60) on an axisymmetric column not in training
