@@ -210,6 +210,23 @@ def test_unrolled_loss_traces_one_frame_for_any_k_and_keeps_its_value():
         return len(jax.make_jaxpr(lambda p: loss(p, K, t.positions[: 6 + K]))(params).eqns)
 
     assert abs(n_eqns(3) - n_eqns(6)) <= 2  # a Python loop adds dozens per frame
+
+    def primitives(jaxpr) -> set:  # every primitive, nested jaxprs (scan, remat) included
+        out = set()
+        for e in jaxpr.eqns:
+            out.add(e.primitive.name)
+            for v in e.params.values():
+                for sub in v if isinstance(v, (list, tuple)) else [v]:
+                    inner = getattr(sub, "jaxpr", sub)
+                    if hasattr(inner, "eqns"):
+                        out |= primitives(inner)
+        return out
+
+    def remat(K):  # is the scanned frame rematerialised (memory independent of K)?
+        jx = jax.make_jaxpr(jax.grad(lambda p: loss(p, K, t.positions[: 6 + K])))(params)
+        return any("remat" in n or "checkpoint" in n for n in primitives(jx.jaxpr))
+
+    assert remat(3) and not remat(1)  # K = 1, every default training, traces as before
     three = float(jax.jit(lambda p: loss(p, 3, t.positions[:9]))(params))
     pieces = [float(window_loss(gns, params, t.positions[: 7 + u], *rest, u, 0.0)[0])
               for u in range(3)]
