@@ -13,6 +13,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import granular_heldout as gh  # noqa: E402
+import granular_impact_probe as gip  # noqa: E402
 import granular_node_tracers as gnt  # noqa: E402
 import granular_truth_spread as gts  # noqa: E402
 import hybrid_families as hf  # noqa: E402
@@ -229,3 +230,31 @@ def test_tracers_follow_the_local_motion_not_a_far_mean():
     start = np.array([left.mean(0), right.mean(0)])
     tr = gnt.tracers(x, start, 0.005, 24)
     np.testing.assert_allclose(tr[-1], start + [-(T - 1) * v, (T - 1) * v], atol=1e-9)
+
+
+def test_impact_probe_scores_only_the_impact_frames_and_the_share_along_the_truth():
+    """Frames whose RMS reference acceleration exceeds the threshold are the impacts: a
+    prediction at half the truth there captures 0.5 with relative RMS 0.5, whatever the
+    other frames do; an error in a quiet frame moves only the other frames' RMS."""
+    g = 1e-4  # m/frame^2
+    rng = np.random.default_rng(0)
+    ref = np.zeros((6, 5, 2))
+    ref[:, :, 1] = -g  # free fall: 1 g, below any threshold
+    ref[2] = rng.normal(0, 20 * g, (5, 2))  # an impact frame (~28 g RMS)
+    ref[3] = rng.normal(0, 10 * g, (5, 2))
+    pred = ref.copy()
+    pred[2:4] *= 0.5
+    pred[0, 0, 0] += 3 * g  # a quiet-frame error: RMS over that frame's 5 nodes and 4 frames
+    out = gip.impact_summary(pred, ref, g, threshold_g=5.0)
+    assert out["impact_frames"] == 2
+    assert out["captured"] == pytest.approx(0.5)
+    assert out["impact_rel_rms"] == pytest.approx(0.5)
+    assert out["other_rms_g"] == pytest.approx(3.0 / np.sqrt(4 * 5))
+    exact = gip.impact_summary(ref, ref, g, threshold_g=5.0)
+    assert exact["captured"] == pytest.approx(1.0) and exact["impact_rel_rms"] == 0.0
+    none = gip.impact_summary(ref[:2], ref[:2], g, threshold_g=5.0)
+    assert none["impact_frames"] == 0 and none["captured"] is None
+    means = gip.family_means([out, none])
+    assert means["cases_with_impacts"] == 1 and means["captured_mean"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="must both be"):
+        gip.impact_summary(pred[:, :4], ref, g, threshold_g=5.0)
