@@ -23,7 +23,7 @@ def probe(model: str, data: str, cases: list[int], starts: list[int], top: int) 
     """Rows (case, start, predicted and reference mean vertical acceleration, mm/frame^2).
     The one place this script calls the simulator."""
     from diffgns.graph.data import load_trajectories
-    from diffgns.graph.evaluate import reference_inputs
+    from diffgns.graph.evaluate import teacher_forced
     from diffgns.graph.train_loop import load_model
 
     gns0, params, info = load_model(model)
@@ -33,18 +33,14 @@ def probe(model: str, data: str, cases: list[int], starts: list[int], top: int) 
     rows = []
     for i in cases:
         ref = refs[i]
-        gns = gns0.for_box(ref.bounds)
         p = np.asarray(ref.positions)
         ids = np.argsort(p[0, :, 1])[-top:]
-        for t0 in starts:
-            sub = ref.replace(positions=ref.positions[t0: t0 + C + 1],
-                              velocities=ref.velocities[t0: t0 + C + 1])
-            prm, state, _ = reference_inputs(gns, params, sub)
-            x = np.asarray(gns.step(prm, state).history[:, -1])
-            last, prev = p[t0 + C, ids, 1], p[t0 + C - 1, ids, 1]
+        frames, x = teacher_forced(gns0, params, ref, [t0 + C + 1 for t0 in starts])
+        for t0, t, xt in zip(starts, frames, x):
+            last, prev = p[t - 1, ids, 1], p[t - 2, ids, 1]
             rows.append(dict(case=i, start=t0,
-                             predicted_mm=1e3 * float(np.mean(x[ids, 1] - 2 * last + prev)),
-                             reference_mm=1e3 * float(np.mean(p[t0 + C + 1, ids, 1]
+                             predicted_mm=1e3 * float(np.mean(xt[ids, 1] - 2 * last + prev)),
+                             reference_mm=1e3 * float(np.mean(p[t, ids, 1]
                                                               - 2 * last + prev))))
     return rows
 

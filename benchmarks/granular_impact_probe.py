@@ -55,40 +55,17 @@ def impact_summary(a_pred: np.ndarray, a_ref: np.ndarray, g_frame: float,
     return out
 
 
-def teacher_forced(gns0, network, ref, stride: int = 1, extra_capacity: int = 8):
-    """(frames (M,), a_pred (M, N, d), a_ref (M, N, d)) in m/frame^2: one model step from the
-    reference's own history at every ``stride``-th frame. The one place this script calls
-    the simulator: one neighbour list of fixed capacity for the whole case (updated to each
-    frame inside the step, so the step compiles once); on overflow it is re-allocated with
-    twice the head-room and the case restarts."""
-    import jax
-    import jax.numpy as jnp
+def accelerations(gns0, network, ref, stride: int = 1):
+    """(a_pred, a_ref) (M, N, d) m/frame^2 at every ``stride``-th frame from C + 1 on: one
+    model step from the reference's own history
+    (:func:`diffgns.graph.evaluate.teacher_forced`), and the reference's own step. The one
+    place this script calls the simulator."""
+    from diffgns.graph.evaluate import teacher_forced
 
-    from diffgns.graph.evaluate import reference_inputs
-    from diffgns.graph.neighbors import did_overflow
-
-    C = gns0.config.history
-    gns = gns0.for_box(ref.bounds)
     p = np.asarray(ref.positions)
-    frames = np.arange(C + 1, p.shape[0], stride)
-    hists = np.stack([np.swapaxes(p[t - C - 1:t], 0, 1) for t in frames])  # (M, N, C+1, d)
-    prm, state0, _ = reference_inputs(gns, network, ref, extra_capacity=extra_capacity)
-
-    @jax.jit
-    def one(hist):
-        nxt = gns.step(prm, state0._replace(history=hist))
-        return nxt.history[:, -1], did_overflow(nxt.nbrs)
-
-    pred = []
-    for h in hists:
-        x, over = one(jnp.asarray(h, state0.history.dtype))
-        if bool(over):
-            return teacher_forced(gns0, network, ref, stride, 2 * extra_capacity)
-        pred.append(np.asarray(x))
-    x = np.stack(pred)
-    a_pred = x - 2 * p[frames - 1] + p[frames - 2]
-    a_ref = p[frames] - 2 * p[frames - 1] + p[frames - 2]
-    return frames, a_pred, a_ref
+    frames = np.arange(gns0.config.history + 1, p.shape[0], stride)
+    _, x = teacher_forced(gns0, network, ref, frames)
+    return x - 2 * p[frames - 1] + p[frames - 2], p[frames] - 2 * p[frames - 1] + p[frames - 2]
 
 
 def main(argv=None) -> None:
@@ -118,7 +95,7 @@ def main(argv=None) -> None:
     dt = float(info.get("source", {}).get("dt", 2.5e-3)) * int(info.get("frame_stride", 1))
     rows = []
     for i, (ref, fam) in enumerate(zip(refs, families)):
-        _, a_pred, a_ref = teacher_forced(gns0, network, ref, args.stride)
+        a_pred, a_ref = accelerations(gns0, network, ref, args.stride)
         row = dict(case=i, family=fam,
                    **impact_summary(a_pred, a_ref, G * dt * dt, args.threshold_g))
         rows.append(row)

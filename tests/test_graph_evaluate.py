@@ -43,3 +43,34 @@ def test_rollout_reference_keeps_the_given_frames_and_times_without_recompiling(
     v = np.asarray(timed.velocities)
     np.testing.assert_allclose(v[1:], np.diff(np.asarray(timed.positions), axis=0) / ref.frame_dt,
                                rtol=1e-5, atol=1e-6)
+
+
+def test_teacher_forced_is_one_step_from_each_reference_history_even_after_an_overflow(case):
+    """teacher_forced's prediction of frame t equals GNS.step from ref's frames t-C-1..t-1
+    with a list allocated there; the histories here compact the column 2x after frame C, so
+    the one list allocated at frame C (no head-room) overflows and is re-allocated."""
+    from diffgns.graph.evaluate import reference_inputs, teacher_forced
+
+    gns, params, ref = case
+    C = gns.config.history
+    x0 = np.asarray(ref.positions[0])
+    centre = x0.mean(0)
+    T = C + 1 + N_PREDICTED
+    scale = np.concatenate([np.ones(C + 1), np.linspace(0.8, 0.5, N_PREDICTED)])
+    drop = 0.5 * 9.81 * (2.5e-3 * np.arange(T)) ** 2
+    pos = np.stack([centre + s * (x0 - centre) - [0.0, d] for s, d in zip(scale, drop)])
+    ref = ref.replace(positions=pos.astype(np.float32),
+                      velocities=np.zeros_like(pos, dtype=np.float32))
+    frames, x = teacher_forced(gns, params, ref, extra_capacity=0)
+    np.testing.assert_array_equal(frames, np.arange(C + 1, T))
+    g = gns.for_box(ref.bounds)
+    for t, xt in zip(frames, x):
+        sub = ref.replace(positions=ref.positions[t - C - 1:t],
+                          velocities=ref.velocities[t - C - 1:t])
+        prm, state, _ = reference_inputs(g, params, sub)
+        want = np.asarray(g.step(prm, state).history[:, -1])
+        np.testing.assert_allclose(xt, want, rtol=1e-5, atol=1e-7)
+    one, x1 = teacher_forced(gns, params, ref, [T - 1])
+    np.testing.assert_allclose(x1[0], x[-1], rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="frames must be indices"):
+        teacher_forced(gns, params, ref, [C])

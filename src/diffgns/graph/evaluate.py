@@ -14,6 +14,7 @@ position MSE at horizons 1, 10, 50, 100 and the full rollout, and the final kine
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -68,6 +69,49 @@ def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = 
                       clamp_shift=jnp.concatenate([given.astype(frames.clamp.shift.dtype),
                                                    frames.clamp.shift]))
     return traj, seconds
+
+
+def teacher_forced(gns: GNS, network, ref: Trajectory, frames=None,
+                   extra_capacity: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """One model step from the reference's own history at each of ``frames`` (teacher
+    forcing): the prediction of frame t from ``ref``'s frames t-C-1 .. t-1.
+
+    Args:
+        gns: the GNS (built for any box; :meth:`GNS.for_box` of ``ref``'s is taken here).
+        network: its weights.
+        ref: reference trajectory, positions (T, N, d) m.
+        frames: (M,) target frame indices, each in [C + 1, T); default every frame from
+            C + 1 on.
+        extra_capacity: edge slots per particle of the one neighbour list (allocated once
+            at frame C and updated to each history inside the step, so the step compiles
+            once); on overflow the whole call is redone with twice the head-room.
+
+    Returns:
+        ``(frames (M,), predicted positions (M, N, d) m)``.
+    """
+    from diffgns.graph.neighbors import did_overflow
+
+    C = gns.config.history
+    gns = gns.for_box(ref.bounds)
+    p = np.asarray(ref.positions)
+    frames = np.arange(C + 1, p.shape[0]) if frames is None else np.asarray(frames, int)
+    if frames.ndim != 1 or np.any(frames < C + 1) or np.any(frames >= p.shape[0]):
+        raise ValueError(f"teacher_forced: frames must be indices in [{C + 1}, {p.shape[0]}) "
+                         f"(a history of {C + 1} frames before each), got {frames.tolist()}")
+    params, state, _ = reference_inputs(gns, network, ref, extra_capacity=extra_capacity)
+
+    @jax.jit
+    def one(hist):
+        nxt = gns.step(params, state._replace(history=hist))
+        return nxt.history[:, -1], did_overflow(nxt.nbrs)
+
+    pred = []
+    for t in frames:
+        x, over = one(jnp.asarray(np.swapaxes(p[t - C - 1:t], 0, 1), state.history.dtype))
+        if bool(over):
+            return teacher_forced(gns, network, ref, frames, 2 * max(extra_capacity, 1))
+        pred.append(np.asarray(x))
+    return frames, np.stack(pred)
 
 
 def score(pred: Trajectory, ref: Trajectory, start: int = 0, wall_x: float | None = None
