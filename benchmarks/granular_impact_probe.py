@@ -92,12 +92,11 @@ def main(argv=None) -> None:
                                 int(info.get("frame_stride", 1)))
     families = list(read_families(args.data).values())
     refs, families = refs[: args.n], families[: args.n]
-    dt = float(info.get("source", {}).get("dt", 2.5e-3)) * int(info.get("frame_stride", 1))
     rows = []
     for i, (ref, fam) in enumerate(zip(refs, families)):
         a_pred, a_ref = accelerations(gns0, network, ref, args.stride)
         row = dict(case=i, family=fam,
-                   **impact_summary(a_pred, a_ref, G * dt * dt, args.threshold_g))
+                   **impact_summary(a_pred, a_ref, G * ref.frame_dt ** 2, args.threshold_g))
         rows.append(row)
         run.print(f"case {i:3d} {fam:10s} impact frames {row['impact_frames']:3d} "
                   f"(peak {row['peak_ref_rms_g']:5.1f} g): captured {_fmt(row['captured'])}, "

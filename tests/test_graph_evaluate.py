@@ -70,7 +70,7 @@ def test_teacher_forced_is_one_step_from_each_reference_history_even_after_an_ov
         prm, state, _ = reference_inputs(g, params, sub)
         want = np.asarray(g.step(prm, state).history[:, -1])
         np.testing.assert_allclose(xt, want, rtol=1e-5, atol=1e-7)
-    one, x1 = teacher_forced(gns, params, ref, [T - 1])
+    _, x1 = teacher_forced(gns, params, ref, [T - 1])
     np.testing.assert_allclose(x1[0], x[-1], rtol=1e-5, atol=1e-7)
     with pytest.raises(ValueError, match="frames must be indices"):
         teacher_forced(gns, params, ref, [C])
