@@ -146,6 +146,51 @@ def test_push_forward_loss_is_of_the_order_of_the_unpushed_one():
     assert np.isfinite(float(l2)) and float(l2) < 2 * float(l0)
 
 
+def test_push_forward_is_one_scanned_frame_equal_to_the_models_rollout_without_gradient():
+    """The push-forward frames are one scanned frame: the traced program of 2 and 5 frames
+    has the same number of equations (a Python loop traced the model once per frame and
+    compiled for half a minute per step at 16), and the loss and gradient equal those of
+    an explicit rollout with :meth:`GNS.advance` from the noisy history, whose parameters
+    are held constant (no gradient through the pushed frames)."""
+    from diffgns.graph.neighbors import edges
+
+    trajs = synthetic(1)
+    gns = small_gns(trajs)
+    t = trajs[0]
+    params = _init(gns, trajs)
+    nbrs = gns.allocate(t.positions[5])
+    key = jax.random.PRNGKey(11)
+    rest = (t.particle_type, t.material, nbrs, key)
+
+    def loss(p, u):
+        return window_loss(gns, p, t.positions[: 7 + u], *rest, u, 0.0)[0]
+
+    def n_eqns(u):
+        return len(jax.make_jaxpr(lambda p: loss(p, u))(params).eqns)
+
+    assert abs(n_eqns(2) - n_eqns(5)) <= 2  # a Python loop adds dozens per frame
+
+    def explicit(p, u):  # pushed with the fixed ``params``: only the last step sees ``p``
+        w = t.positions[: 7 + u]
+        clean = jnp.swapaxes(w[:6], 0, 1)
+        hist = clean + random_walk_noise(key, clean, gns.config.noise_std, t.particle_type)
+        for k in range(u):
+            x, _, _ = gns.advance(params, hist, t.particle_type, t.material, nbrs, w[6 + k])
+            hist = jnp.concatenate([hist[:, 1:], x[:, None]], axis=1)
+        s, r, m = edges(gns.neighbors.update(hist[:, -1], nbrs), hist.shape[0])
+        pred = gns.normalized_acceleration(p, hist, t.particle_type, t.material, s, r, m)
+        tgt = gns.normalizer.acceleration.normalize(pushed_target(w, hist, u))
+        return jnp.mean(jnp.sum((pred - tgt) ** 2, -1))
+
+    flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])
+    for u in (1, 4):
+        assert float(jax.jit(loss, static_argnums=1)(params, u)) == pytest.approx(
+            float(explicit(params, u)), rel=1e-5)
+        g = flat(jax.grad(loss)(params, u))
+        g_ref = flat(jax.grad(explicit)(params, u))
+        assert np.linalg.norm(g - g_ref) <= 1e-4 * np.linalg.norm(g_ref)
+
+
 def test_unrolled_loss_is_the_mean_of_one_step_losses_along_the_models_rollout():
     """loss_frames = 2: the value is the mean of the one-step loss and the loss after one
     model frame (which equals the 1-frame push-forward loss: same noise, same frame); unlike
