@@ -182,6 +182,19 @@ def test_truth_spread_dt_perturbation_is_a_shorter_substep_not_another_scene():
     assert 0 < d < 1e-4  # the same flow, not bit-identical: the substep did change
 
 
+def test_truth_spread_stiff_perturbation_is_ten_times_e_at_its_own_stable_dt():
+    from diffgns.scene.families import random_scene
+
+    scene = random_scene("squares", 3)
+    stiff = gts.perturbed_scene(scene, "stiff")
+    assert [b.material.E for b in stiff.bodies] == [10 * b.material.E for b in scene.bodies]
+    assert [b.material.friction_angle for b in stiff.bodies] == [
+        b.material.friction_angle for b in scene.bodies]
+    # c_p grows by sqrt(10): the CFL substep shrinks by more than 2x (the speed bound adds)
+    assert stiff.substeps > 2 * scene.substeps and stiff.frame_dt == scene.frame_dt
+    assert gts.perturbed_scene(scene, "phi") is scene
+
+
 def test_heldout_timing_refuses_a_scene_that_does_not_redraw_the_stored_one():
     with pytest.raises(SystemExit, match="redraws .* particles, the data has 7"):
         gh.speed_of_case(None, None, None, ("columns", 3, 7, {}), 1)
