@@ -2,6 +2,7 @@
 diffgns.timing on the program the sizing run compiled."""
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
@@ -72,5 +73,13 @@ def test_teacher_forced_is_one_step_from_each_reference_history_even_after_an_ov
         np.testing.assert_allclose(xt, want, rtol=1e-5, atol=1e-7)
     _, x1 = teacher_forced(gns, params, ref, [T - 1])
     np.testing.assert_allclose(x1[0], x[-1], rtol=1e-5, atol=1e-7)
+    # other weights, same shapes: the compiled program is reused (weights are arguments)
+    from diffgns.graph.evaluate import _teacher_forced_compiled
+
+    compiled = _teacher_forced_compiled._cache_size()
+    assert compiled >= 1  # the calls above went through it
+    _, x2 = teacher_forced(gns, jax.tree.map(lambda a: 1.01 * a, params), ref, [T - 1])
+    assert _teacher_forced_compiled._cache_size() == compiled
+    assert not np.allclose(x2, x1)
     with pytest.raises(ValueError, match="frames must be indices"):
         teacher_forced(gns, params, ref, [C])

@@ -14,6 +14,8 @@ position MSE at horizons 1, 10, 50, 100 and the full rollout, and the final kine
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -71,6 +73,19 @@ def rollout_reference(gns: GNS, network, ref: Trajectory, n_steps: int | None = 
     return traj, seconds
 
 
+@functools.partial(jax.jit, static_argnames="gns")
+def _teacher_forced_compiled(gns: GNS, params, state, hists):
+    """(positions (M, N, d), overflowed (M,)): :meth:`GNS.step` from each history (M, N, C+1,
+    d) of ``hists`` with ``state``'s list and walls."""
+    from diffgns.graph.neighbors import did_overflow
+
+    def one(hist):
+        nxt = gns.step(params, state._replace(history=hist))
+        return nxt.history[:, -1], did_overflow(nxt.nbrs)
+
+    return jax.lax.map(one, hists)
+
+
 def teacher_forced(gns: GNS, network, ref: Trajectory, frames=None,
                    extra_capacity: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """One model step from the reference's own history at each of ``frames`` (teacher
@@ -86,14 +101,14 @@ def teacher_forced(gns: GNS, network, ref: Trajectory, frames=None,
             at frame C and updated to each history inside the step); on overflow the whole
             call is redone with twice the head-room.
 
-    All frames run in one compiled ``lax.map`` over the histories (one program per case,
-    one transfer back, no host sync per frame).
+    All frames run in one compiled ``lax.map`` over the histories (one transfer back, no
+    host sync per frame), compiled once per (GNS, shapes) like
+    :func:`~diffgns.interface.rollout_jit`: the weights are arguments, so another case of
+    the same size, or other weights, never recompile.
 
     Returns:
         ``(frames (M,), predicted positions (M, N, d) m)``.
     """
-    from diffgns.graph.neighbors import did_overflow
-
     C = gns.config.history
     gns = gns.for_box(ref.bounds)
     p = np.asarray(ref.positions)
@@ -104,11 +119,8 @@ def teacher_forced(gns: GNS, network, ref: Trajectory, frames=None,
     params, state, _ = reference_inputs(gns, network, ref, extra_capacity=extra_capacity)
     hists = np.stack([np.swapaxes(p[t - C - 1:t], 0, 1) for t in frames])  # (M, N, C+1, d)
 
-    def one(hist):
-        nxt = gns.step(params, state._replace(history=hist))
-        return nxt.history[:, -1], did_overflow(nxt.nbrs)
-
-    x, over = jax.jit(lambda h: jax.lax.map(one, h))(jnp.asarray(hists, state.history.dtype))
+    x, over = _teacher_forced_compiled(gns, params, state,
+                                       jnp.asarray(hists, state.history.dtype))
     if bool(jnp.any(over)):
         return teacher_forced(gns, network, ref, frames, 2 * max(extra_capacity, 1))
     return frames, np.asarray(x)

@@ -102,7 +102,7 @@ def window_loss(gns: GNS, params, window, particle_type, material, nbrs, key, un
         kin = jax.lax.dynamic_index_in_dim(window, C + 1 + k, 0, keepdims=False)
         x_next, nb, _ = gns.advance(frozen, hist, particle_type, material, nbrs, kin,
                                     geometry)
-        hist = jnp.concatenate([hist[:, 1:], jax.lax.stop_gradient(x_next)[:, None]], axis=1)
+        hist = jnp.concatenate([hist[:, 1:], x_next[:, None]], axis=1)  # no parameter in it
         return (hist, over | did_overflow(nb)), None
 
     # One traced frame for every push-forward count, as for the loss frames below (a Python
