@@ -4,10 +4,11 @@ modelling error (and one that is not: ``stiff``), scored exactly as a GNS is sco
 
     .venv/bin/python benchmarks/granular_truth_spread.py --families squares columns \
         obstacles collision --n 24 --seed 1 [--factor 16 --frame-stride 2] \
-        [--perturb dt phi stiff] [--out granular_truth_spread.json]
+        [--perturb dt phi stiff] [--young-modulus 2e6] [--out granular_truth_spread.json]
 
 For every scene of ``diffgns dataset --kind granular --seed SEED --n N`` (the validation set
-is seed 1, n 24) the MPM runs twice: as generated, and perturbed by
+is seed 1, n 24; ``--young-modulus`` as the dataset's, default 2 MPa) the MPM runs twice:
+as generated, and perturbed by
 
 - ``dt``: substeps 20% shorter (the same model at another stable time step; a numerical
   perturbation of the kind any two correct solvers differ by), or
@@ -85,6 +86,9 @@ def main(argv=None) -> None:
     ap.add_argument("--factor", type=int, default=16, help="particles per node")
     ap.add_argument("--frame-stride", type=int, default=2)
     ap.add_argument("--perturb", nargs="+", choices=PERTURBATIONS, default=["dt", "phi"])
+    ap.add_argument("--young-modulus", type=float, default=2.0e6, metavar="PA",
+                    help="the sand's E of the unperturbed scenes, as `diffgns dataset "
+                    "--young-modulus` (default 2e6)")
     ap.add_argument("--out", default="granular_truth_spread.json")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -100,7 +104,8 @@ def main(argv=None) -> None:
     rows: dict[str, list[dict]] = {p: [] for p in args.perturb}
     fams = []
     for i, (family, seed, scene, _) in enumerate(
-            family_scenes(args.families, args.n, args.seed)):
+            family_scenes(args.families, args.n, args.seed,
+                          young_modulus=args.young_modulus)):
         sim = MPM(scene)
         base, _ = sim.run(sim.params(), sim.init(), args.frames)
         ref = coarse_grain(base, args.factor, args.frame_stride)
@@ -132,6 +137,7 @@ def main(argv=None) -> None:
                       f"{t['final_position_error_rel_displacement_max']:<8.4f} "
                       f"{ok:>8}/{t['cases']}")
     path = run.finish(args.out, dict(families=args.families, n=args.n, seed=args.seed,
+                                     young_modulus=args.young_modulus,
                                      factor=args.factor, frame_stride=args.frame_stride,
                                      targets=TARGETS, rows=rows, tables=tables))
     run.print(f"wrote {path}")

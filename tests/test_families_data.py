@@ -96,6 +96,31 @@ def test_cli_refuses_a_bad_box(tmp_path, capsys, boxes, field, words):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("value", ["0", "-2e7", "nan"])
+def test_cli_refuses_a_bad_young_modulus(tmp_path, capsys, value):
+    out = tmp_path / "x.h5"
+    assert main(["dataset", "--kind", "granular", "--young-modulus", value,
+                 "--out", str(out)]) == 2
+    assert "--young-modulus" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_young_modulus_is_part_of_the_recipe_and_redraws_with_it(tmp_path):
+    """A set made with --young-modulus records E in its recipe's ranges, so a resume with
+    another E is another recipe and its scenes redraw with their own stiffness."""
+    from diffgns.io.families_data import families_recipe
+
+    stiff = families_recipe(FAMS, 3, 4, young_modulus=2.0e7)
+    assert stiff["ranges"]["young_modulus"] == 2.0e7
+    assert families_recipe(FAMS, 3, 4)["ranges"]["young_modulus"] == 2.0e6
+    assert stiff != families_recipe(FAMS, 3, 4)
+    path = tmp_path / "r.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["recipe"] = json.dumps(stiff)
+    scene = random_sample("columns", 9, **read_ranges(path))[0]
+    assert {b.material.E for b in scene.bodies} == {2.0e7}
+
+
 def test_cli_refuses_column_pairs_in_a_box_too_long_for_them_to_meet(tmp_path, capsys):
     out = tmp_path / "x.h5"
     assert main(["dataset", "--kind", "granular", "--families", "column_pair", "--boxes",
@@ -130,19 +155,37 @@ def test_held_out_compositions_in_a_longer_box_keep_their_box_in_the_recipe(tmp_
         generate_families(out, ["column_hit", "squares"], 2, 3, seed=5, progress=False)
 
 
-def test_a_model_trained_on_granular_data_records_its_mpm_resolution(tmp_path):
-    """train_loop reads dx and particles per cell from the datasets' recipes (the general
-    model's support check needs them: without dx it accepted 8-cell scenes); datasets of two
-    resolutions are refused."""
-    from diffgns.graph.train_loop import _granular_resolution
+def test_a_model_trained_on_granular_data_records_its_mpm_and_its_sand(tmp_path):
+    """train_loop reads dx, particles per cell and the sand's E from the datasets' recipes
+    (the general model's support check needs them: without dx it accepted 8-cell scenes,
+    without E a model trained on 20 MPa sand would take 2 MPa scenes for its own); datasets
+    of two resolutions or two sands are refused, and a file made before the recipe recorded
+    E has the default sand."""
+    from diffgns.graph.support import ModelSource, UnsupportedSceneError, check_scene
+    from diffgns.graph.train_loop import _granular_source
 
     def fake(name, **ranges):
         with h5py.File(tmp_path / name, "w") as f:
             f.attrs["recipe"] = json.dumps({"ranges": ranges})
         return tmp_path / name
 
-    a = fake("a.h5", dx=0.1 / 16, particles_per_cell=4, boxes=[[0.8, 0.35]])
-    b = fake("b.h5", dx=0.1 / 16, particles_per_cell=4)
-    assert _granular_resolution([a, b]) == {"dx": 0.1 / 16, "particles_per_cell": 4}
-    with pytest.raises(InputError, match="different MPM resolutions"):
-        _granular_resolution([a, fake("c.h5", dx=0.1 / 8, particles_per_cell=4)])
+    res = dict(dx=0.1 / 16, particles_per_cell=4)
+    a = fake("a.h5", **res, boxes=[[0.8, 0.35]])
+    b = fake("b.h5", **res, young_modulus=2.0e6)
+    src = _granular_source([a, b])
+    assert {k: src[k] for k in res} == res
+    assert src["material"] == dict(E=2.0e6, nu=0.3, rho=1800.0, cohesion=0.0)
+    with pytest.raises(InputError, match="different MPMs"):
+        _granular_source([a, fake("c.h5", dx=0.1 / 8, particles_per_cell=4)])
+    stiff = fake("s.h5", **res, young_modulus=2.0e7)
+    with pytest.raises(InputError, match="one sand"):
+        _granular_source([a, stiff])
+    info = dict(source=dict(_granular_source([stiff]), kind="granular", dt=2.5e-3,
+                            bounds=[[0, 0.8], [0, 0.5]], boxes=[[[0, 0.8], [0, 0.35]]]),
+                gns=dict(bounds=[[0, 0.8], [0, 0.5]]), factor=16)
+    assert ModelSource.from_info(info).material["E"] == 2.0e7
+    soft_scene, _ = random_sample("columns", 2, boxes=((0.8, 0.35),))
+    stiff_scene, _ = random_sample("columns", 2, boxes=((0.8, 0.35),), young_modulus=2.0e7)
+    check_scene(stiff_scene, info)
+    with pytest.raises(UnsupportedSceneError, match=r"E = 2e\+06 \(trained on 2e\+07\)"):
+        check_scene(soft_scene, info)

@@ -54,6 +54,20 @@ def test_adding_held_out_families_leaves_every_training_draw_unchanged():
     assert counts == [2112, 1280, 4224, 1856, 1424, 2048, 576, 1936]
 
 
+@pytest.mark.parametrize("family", FAMILIES)
+def test_young_modulus_sets_every_bodys_sand_and_leaves_the_draw_unchanged(family):
+    """A stiffer-sand set (``--young-modulus``) is the same draw as the default one: only the
+    sand's E differs, and the MPM takes the smaller stable substep that E calls for."""
+    soft, d_soft = random_sample(family, 3)
+    stiff, d_stiff = random_sample(family, 3, young_modulus=2.0e7)
+    assert d_soft == d_stiff and soft.n_particles == stiff.n_particles
+    assert {b.material.E for b in soft.bodies} == {2.0e6}
+    assert {b.material.E for b in stiff.bodies} == {2.0e7}
+    assert all(b.material.friction_angle == d_soft["friction_angle"] for b in stiff.bodies)
+    # c_p grows by sqrt(10) (the speed bound adds to it): more than twice the substeps
+    assert stiff.substeps > 2 * soft.substeps and stiff.frame_dt == soft.frame_dt
+
+
 def _check_valid(family: str, seed: int, ranges: FamilyRanges, **kw) -> None:
     scene, d = random_sample(family, seed, **kw)
     L, H = d["box"]
@@ -157,6 +171,8 @@ def test_plan_is_stable_and_held_out_seeds_are_disjoint():
     (dict(family="squares", seed=0, speed=(-1.0, 1.0)), "speed"),
     (dict(family="squares", seed=0, colour=(1, 2)), "colour"),
     (dict(family="squares", seed=0, size=(0.5, 0.6)), "could not place"),
+    (dict(family="squares", seed=0, young_modulus=0.0), "young_modulus"),
+    (dict(family="squares", seed=0, young_modulus=float("nan")), "young_modulus"),
 ])
 def test_bad_ranges_are_refused(kw, field):
     with pytest.raises(SceneError, match=field):

@@ -132,7 +132,12 @@ def box_size(text: str) -> tuple[float, float]:
 def granular_kw(args) -> dict:
     """Family ranges (:class:`~diffgns.scene.families.FamilyRanges` fields) of a granular
     dataset recipe from the ``dataset`` arguments (only those given)."""
-    return dict(boxes=tuple(args.boxes)) if getattr(args, "boxes", None) else {}
+    kw: dict = {}
+    if getattr(args, "boxes", None):
+        kw["boxes"] = tuple(args.boxes)
+    if getattr(args, "young_modulus", None) is not None:
+        kw["young_modulus"] = args.young_modulus
+    return kw
 
 
 def non_negative(text: str) -> float:

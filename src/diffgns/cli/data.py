@@ -14,6 +14,7 @@ from diffgns.cli.checks import (
     finite,
     frames,
     granular_kw,
+    positive,
     squares_kw,
 )
 
@@ -223,6 +224,9 @@ def register(sub) -> None:
     d.add_argument("--boxes", type=box_size, nargs="+", default=None, metavar="LxH",
                    help="granular: boxes drawn from, LENGTHxHEIGHT in m, multiples of "
                    "0.0125 m (default 0.8x0.35 0.6x0.5; a held-out longer box: 1.4x0.35)")
+    d.add_argument("--young-modulus", type=positive, default=None, metavar="PA",
+                   help="granular: the sand's Young's modulus E in Pa, > 0 (default 2e6; the "
+                   "MPM's substep shrinks as 1/sqrt(E), so 2e7 costs ~3.2x the substeps)")
     d.add_argument("--out", required=True,
                    help="output .h5 file; built as <out>.partial and renamed when complete; "
                    "an existing file or .partial made by the same recipe is resumed")

@@ -114,19 +114,26 @@ def average_models(paths, out: str | Path) -> Path:
     return Path(out)
 
 
-def _granular_resolution(paths) -> dict:
-    """``dx`` (m) and ``particles_per_cell`` of the MPM that made the scene-family datasets
-    ``paths`` (their recipes), so that :func:`~diffgns.graph.support.check_scene` refuses a
-    scene at another resolution; datasets of different resolutions are refused."""
+def _granular_source(paths) -> dict:
+    """What the MPM of the scene-family datasets ``paths`` was (their recipes): ``dx`` (m),
+    ``particles_per_cell`` and the sand (``material``: E, nu, rho, cohesion; Pa, kg/m^3), so
+    that :func:`~diffgns.graph.support.check_scene` refuses a scene at another resolution or
+    of another sand. Datasets that differ in any of them are refused."""
     from diffgns.io.families_data import read_ranges
+    from diffgns.scene.families import FamilyRanges
+    from diffgns.scene.materials import Sand
 
     got = {}
     for p in paths:
         ranges = read_ranges(p)
-        got[str(p)] = {k: ranges[k] for k in ("dx", "particles_per_cell")}
-    if len({tuple(v.values()) for v in got.values()}) > 1:
-        raise InputError("--data", f"the datasets were made at different MPM resolutions "
-                         f"({got})", "train on data of one resolution")
+        # files made before the recipe recorded E had the default sand
+        sand = Sand(E=float(ranges.get("young_modulus", FamilyRanges().young_modulus)))
+        got[str(p)] = dict(dx=ranges["dx"], particles_per_cell=ranges["particles_per_cell"],
+                           material={k: float(getattr(sand, k))
+                                     for k in ("E", "nu", "rho", "cohesion")})
+    if len({json.dumps(v, sort_keys=True) for v in got.values()}) > 1:
+        raise InputError("--data", f"the datasets were made by different MPMs (resolution or "
+                         f"sand: {got})", "train on data of one resolution and one sand")
     return next(iter(got.values()))
 
 
@@ -156,8 +163,8 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     # What the data came from (e.g. the MPM resolution a hybrid must pair this model with).
     stats["source"] = {k: meta[k] for k in ("kind", "width", "cells_across", "dt", "bounds")
                        if k in meta}
-    if meta.get("kind") == "granular":  # the MPM resolution, from the recipe in the files
-        stats["source"].update(_granular_resolution(train_paths))
+    if meta.get("kind") == "granular":  # the MPM and its sand, from the files' recipes
+        stats["source"].update(_granular_source(train_paths))
     # every training box: the network saw each trajectory's own walls (graph.geometry), so
     # the model supports those boxes (graph.support)
     stats["source"]["boxes"] = sorted({tuple(map(tuple, np.asarray(t.bounds, float).tolist()))

@@ -78,6 +78,9 @@ class FamilyRanges:
         dx: MPM cell size, m; lattice: placement lattice in cells; gap: lattice units kept
             free between bodies, obstacles and (for thrown masses) the walls.
         particles_per_cell, floor_mu, obstacle_mu, frame_dt (s): passed to the scene.
+        young_modulus: the sand's Young's modulus E, Pa (default 2 MPa, the reference GNS's
+            column data; the MPM's stable substep shrinks as 1/sqrt(E)). Not a draw: every
+            scene of a set has the same E, and the random stream does not depend on it.
     """
 
     friction_angle: tuple[float, float] = (15.0, 45.0)
@@ -98,8 +101,12 @@ class FamilyRanges:
     floor_mu: float = 0.5
     obstacle_mu: float = 0.5
     frame_dt: float = 2.5e-3
+    young_modulus: float = 2.0e6
 
     def __post_init__(self):
+        if not (math.isfinite(self.young_modulus) and self.young_modulus > 0):
+            raise SceneError(f"FamilyRanges.young_modulus = {self.young_modulus} must be a "
+                             "finite stiffness > 0 Pa (e.g. 2e6 or 2e7)")
         for name in ("friction_angle", "size", "column_width", "aspect_ratio",
                      "obstacle_width", "obstacle_height", "n_masses", "n_obstacles"):
             lo, hi = getattr(self, name)
@@ -174,7 +181,7 @@ def random_sample(family: str, seed: int, **ranges) -> tuple[Scene, dict]:
                 "columns" if family == "column_pair" else "use smaller sizes or a larger box")
         raise SceneError(f"random_scene: could not place a {family} scene in the box {box} in "
                          f"{_DRAWS} draws; {hint}")
-    sand = Sand(friction_angle=phi)
+    sand = Sand(friction_angle=phi, E=r.young_modulus)
     bodies = tuple(Body(Rectangle(*lay.metres(b)), sand, velocity=v,
                         particles_per_cell=r.particles_per_cell, name=f"mass{k}")
                    for k, (b, v) in enumerate(zip(lay.bodies, lay.velocities)))
