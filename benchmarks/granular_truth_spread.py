@@ -10,12 +10,15 @@ For every scene of ``diffgns dataset --kind granular --seed SEED --n N`` (the va
 is seed 1, n 24; ``--young-modulus`` as the dataset's, default 2 MPa) the MPM runs twice:
 as generated, and perturbed by
 
-- ``dt``: substeps 20% shorter (the same model at another stable time step; a numerical
-  perturbation of the kind any two correct solvers differ by), or
+- ``dt``: substeps 20% shorter (``--dt-factor``, default 0.8; the same model at another
+  stable time step; a numerical perturbation of the kind any two correct solvers differ by;
+  0.1 approaches the time-converged MPM), or
 - ``phi``: the friction angle 0.1 degrees higher (a tenth of the inversion tolerance), or
 - ``stiff``: Young's modulus 10x higher, at that material's own stable time step (not a
   small perturbation: how much of the truth is set by the scenes' elastic stiffness, e.g.
-  masses that rebound from an impact).
+  masses that rebound from an impact), or
+- ``stiff_dt``: the substep of ``stiff`` at the scene's own E (the same number of substeps
+  without the stiffer sand: what of ``stiff``'s spread is the substep count, not E).
 
 Both trajectories are reduced to the GNS's nodes (``coarse_grain``: cluster means of
 ``factor`` particles fixed at frame 0, every ``frame_stride``-th frame) and the perturbed one
@@ -34,7 +37,7 @@ import argparse
 
 import protocol
 
-PERTURBATIONS = ("dt", "phi", "stiff")
+PERTURBATIONS = ("dt", "phi", "stiff", "stiff_dt")
 
 
 def node_spread(positions, factor: int) -> tuple[float, float]:
@@ -50,25 +53,27 @@ def node_spread(positions, factor: int) -> tuple[float, float]:
     return float(np.sqrt((r ** 2).mean())), float(np.percentile(r, 99))
 
 
-def perturbed_scene(scene, how: str):
-    """``scene`` with the ``dt`` or ``stiff`` perturbation (``phi`` is a parameter, not a
-    scene change: the scene itself is returned)."""
+def perturbed_scene(scene, how: str, dt_factor: float = 0.8):
+    """``scene`` with the ``dt``, ``stiff`` or ``stiff_dt`` perturbation (``phi`` is a
+    parameter, not a scene change: the scene itself is returned)."""
     from dataclasses import replace
 
     if how == "dt":
-        return scene.replace(dt=0.8 * scene.substep_dt)
+        return scene.replace(dt=dt_factor * scene.substep_dt)
     if how == "stiff":
         bodies = tuple(replace(b, material=replace(b.material, E=10 * b.material.E))
                        for b in scene.bodies)
         return scene.replace(bodies=bodies, dt=None)  # that material's own stable dt
+    if how == "stiff_dt":
+        return scene.replace(dt=perturbed_scene(scene, "stiff").substep_dt)
     return scene
 
 
-def perturbed_run(scene, how: str, n_frames: int):
+def perturbed_run(scene, how: str, n_frames: int, dt_factor: float = 0.8):
     """MPM trajectory of ``scene`` perturbed by ``how`` (one of :data:`PERTURBATIONS`)."""
     from diffgns.mpm import MPM
 
-    sim = MPM(perturbed_scene(scene, how))
+    sim = MPM(perturbed_scene(scene, how, dt_factor))
     params = sim.params()
     if how == "phi":
         params = params.replace(friction_angle=params.friction_angle + 0.1)
@@ -86,6 +91,9 @@ def main(argv=None) -> None:
     ap.add_argument("--factor", type=int, default=16, help="particles per node")
     ap.add_argument("--frame-stride", type=int, default=2)
     ap.add_argument("--perturb", nargs="+", choices=PERTURBATIONS, default=["dt", "phi"])
+    ap.add_argument("--dt-factor", type=float, default=0.8,
+                    help="the dt perturbation's substep, a fraction of the stable one (default "
+                    "0.8; 0.1 approaches the time-converged MPM)")
     ap.add_argument("--young-modulus", type=float, default=2.0e6, metavar="PA",
                     help="the sand's E of the unperturbed scenes, as `diffgns dataset "
                     "--young-modulus` (default 2e6)")
@@ -112,8 +120,8 @@ def main(argv=None) -> None:
         rms, p99 = node_spread(np.asarray(base.positions), args.factor)
         fams.append(family)
         for how in args.perturb:
-            other = coarse_grain(perturbed_run(scene, how, args.frames), args.factor,
-                                 args.frame_stride)
+            other = coarse_grain(perturbed_run(scene, how, args.frames, args.dt_factor),
+                                 args.factor, args.frame_stride)
             row = score(other, ref)
             row.update(case=i, family=family, scene_seed=seed, perturbation=how,
                        node_spread_rms_m=rms, node_spread_p99_m=p99)
@@ -138,6 +146,7 @@ def main(argv=None) -> None:
                       f"{ok:>8}/{t['cases']}")
     path = run.finish(args.out, dict(families=args.families, n=args.n, seed=args.seed,
                                      young_modulus=args.young_modulus,
+                                     dt_factor=args.dt_factor,
                                      factor=args.factor, frame_stride=args.frame_stride,
                                      targets=TARGETS, rows=rows, tables=tables))
     run.print(f"wrote {path}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -193,6 +194,15 @@ def test_truth_spread_stiff_perturbation_is_ten_times_e_at_its_own_stable_dt():
     # c_p grows by sqrt(10): the CFL substep shrinks by more than 2x (the speed bound adds)
     assert stiff.substeps > 2 * scene.substeps and stiff.frame_dt == scene.frame_dt
     assert gts.perturbed_scene(scene, "phi") is scene
+    # stiff_dt: stiff's substep at the scene's own sand
+    fine = gts.perturbed_scene(scene, "stiff_dt")
+    assert fine.substeps == stiff.substeps and fine.substep_dt == stiff.substep_dt
+    assert [b.material for b in fine.bodies] == [b.material for b in scene.bodies]
+    # dt: a fraction of the stable substep (default 0.8)
+    for f in (0.8, 0.1):
+        short = gts.perturbed_scene(scene, "dt", f)
+        assert short.substep_dt <= f * scene.substep_dt * (1 + 1e-12)
+        assert short.substeps <= math.ceil(scene.substeps / f) + 1
 
 
 def test_heldout_timing_refuses_a_scene_that_does_not_redraw_the_stored_one():
