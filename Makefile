@@ -116,7 +116,7 @@ data/granular_valid.shard-%-of-2.h5: $(VENV)/.installed-test
 
 # The validation draw with a 10x stiffer sand (E = 20 MPa, inside the 10-100 MPa of real
 # sand; the MPM takes ~3x the substeps): `make -j2 granular-e20-data` (docs/guides/gns.md
-# "A stiffer sand, and the MPM's time step").
+# "Measured since ...: most of that is the MPM's substep").
 .PHONY: granular-e20-data
 granular-e20-data: data/granular_valid_e20.h5
 
