@@ -16,15 +16,16 @@ et al. (2005): 1.2 a (a < 1.8), 1.9 a^(2/3) (a > 2.8). 3D:
 R0, 8 particles per cell), (R - R0)/R0 against Lube et al. (2004): 1.24 a (a <= 1.7), 1.6
 a^(1/2) above. ``--dt-factors``: each case also at substeps that fraction of the stable one
 (the time-step convergence at a fixed cell size); ``--floor``: a Coulomb floor of
-coefficient ``--floor-mu`` (default), or a slip or sticky one. Sand phi = 30 deg, floor mu =
-0.5, E = 2 MPa, rho = 1800 kg/m^3, in float32, run to ``--seconds`` (default 1 s) of flow.
-Three measures of the final deposit: ``front`` (far edge of the farthest one-cell bin of x,
-or of r, holding at least one cell of deposit height:
-:func:`diffgns.metrics.deposit_front`), ``p99`` (99th percentile of x or r) and ``max``
-(farthest particle); 3D adds the spread of the per-sector p99 radius over eight 45-degree
-sectors (axisymmetry) and the final top height. Accuracy only (the protocol records the
-load, never refuses); each case is written as soon as it is done and skipped when ``--out``
-already holds it (resumable). Wall time per case is recorded, not a speed figure.
+coefficient ``--floor-mu`` (default), or a slip or sticky one; ``--flip``: the
+``Scene.flip`` of every case. Sand phi = 30 deg, floor mu = 0.5, E = 2 MPa, rho = 1800
+kg/m^3, in float32, run to ``--seconds`` (default 1 s) of flow. Three measures of the final
+deposit: ``front`` (far edge of the farthest one-cell bin of x, or of r, holding at least
+one cell of deposit height: :func:`diffgns.metrics.deposit_front`), ``p99`` (99th percentile
+of x or r) and ``max`` (farthest particle); 3D adds the spread of the per-sector p99 radius
+over eight 45-degree sectors (axisymmetry) and the final top height. Accuracy only (the
+protocol records the load, never refuses); each case is written as soon as it is done and
+skipped when ``--out`` already holds it (resumable). Wall time per case is recorded, not a
+speed figure.
 """
 from __future__ import annotations
 
@@ -45,7 +46,7 @@ def lube(dim: int, a: float) -> float:
 
 
 def case(dim: int, a: float, cells: int, seconds: float, dt_factor: float = 1.0,
-         floor_mu: float = 0.5, floor: str = "friction") -> dict:
+         floor_mu: float = 0.5, floor: str = "friction", flip: float = 0.0) -> dict:
     from diffgns import MPM, metrics
     from diffgns.scene.builders import column_collapse
     from diffgns.scene.builders3d import axisymmetric_column, cylinder_axis
@@ -64,6 +65,8 @@ def case(dim: int, a: float, cells: int, seconds: float, dt_factor: float = 1.0,
         from diffgns.scene.elements import Wall
 
         sc = sc.replace(walls=replace(sc.walls, bottom=Wall(floor)))
+    if flip:
+        sc = sc.replace(flip=flip)
     if dt_factor != 1.0:  # a fraction of the stable substep: the time-step convergence
         sc = sc.replace(dt=dt_factor * sc.substep_dt)
     frames = int(np.ceil(seconds / sc.frame_dt))
@@ -91,7 +94,8 @@ def case(dim: int, a: float, cells: int, seconds: float, dt_factor: float = 1.0,
         extra = {"sector_p99_spread": (max(sectors) - min(sectors)) / float(np.mean(sectors))}
     norm = {k: (v - L0) / L0 for k, v in (("front", front), ("p99", np.percentile(dist, 99)),
                                         ("max", dist.max()))}
-    return dict(dim=dim, aspect_ratio=a, cells=cells, dt_factor=dt_factor, floor=floor,
+    return dict(dim=dim, aspect_ratio=a, cells=cells, dt_factor=dt_factor, flip=flip,
+                floor=floor,
                 floor_mu=floor_mu if floor == "friction" else None, dx=sc.dx,
                 substep_dt=float(sc.substep_dt), particles=int(x.shape[0]),
                 substeps_per_frame=int(sc.substeps), frames=frames,
@@ -114,6 +118,8 @@ def main(argv=None) -> None:
     ap.add_argument("--dt-factors", type=float, nargs="+", default=[1.0],
                     help="substeps as fractions of the stable one (default 1; e.g. 1 0.5 0.25 "
                     "0.125: the time-step convergence at each resolution)")
+    ap.add_argument("--flip", type=float, default=0.0,
+                    help="Scene.flip, the FLIP fraction of the velocity update (default 0)")
     ap.add_argument("--floor", choices=("friction", "slip", "sticky"), default="friction",
                     help="the floor's condition (default friction, Coulomb with --floor-mu)")
     ap.add_argument("--floor-mu", type=float, default=0.5,
@@ -129,15 +135,16 @@ def main(argv=None) -> None:
     path = protocol.results_path(out)
     rows = json.loads(path.read_text()).get("rows", []) if path.exists() else []
     done = {(r["dim"], r["aspect_ratio"], r["cells"], r.get("dt_factor", 1.0),
-             r.get("floor", "friction"), r.get("floor_mu", 0.5)) for r in rows}
+             r.get("floor", "friction"), r.get("floor_mu", 0.5), r.get("flip", 0.0))
+            for r in rows}
     mu = args.floor_mu if args.floor == "friction" else None
     run.print(f"{'a':>4} {'cells':>5} {'dt':>6} {'N':>7} {'front':>6} {'p99':>6} {'max':>6} "
               f"{'law':>5} {'front/law-1':>11} {'H/L0':>5} {'rest@':>5}")
     for a, c, f in itertools.product(args.aspect_ratios, args.cells, args.dt_factors):
-        if (args.dim, a, c, f, args.floor, mu) in done:
+        if (args.dim, a, c, f, args.floor, mu, args.flip) in done:
             continue
         try:
-            r = case(args.dim, a, c, args.seconds, f, args.floor_mu, args.floor)
+            r = case(args.dim, a, c, args.seconds, f, args.floor_mu, args.floor, args.flip)
         except SceneError as e:  # a height that is not a whole number of cells
             run.print(f"{a:>4g} {c:>5}  skipped: {e}")
             continue

@@ -51,6 +51,16 @@ def test_sand_scene_traces_return_map_and_only_declared_walls():
     assert _traced(jp) == {"drucker_prager", "wall_friction"}
 
 
+def test_flip_traced_only_when_declared():
+    """A FLIP update scatters the momentum before the forces beside the usual one (2 d + 1
+    grid channels instead of d + 1) and gathers the grid's velocity change with the
+    velocity (2 d channels instead of d); APIC alone traces neither."""
+    apic = _jaxpr(_scene(Elastic()))
+    flip = _jaxpr(_scene(Elastic()).replace(flip=0.99))
+    assert "slice_sizes=(3, 2)" in apic and "slice_sizes=(3, 4)" not in apic
+    assert "slice_sizes=(3, 4)" in flip and "slice_sizes=(3, 2)" not in flip
+
+
 def test_obstacles_traced_only_when_declared():
     obs = (BoxObstacle(0.6, 0.0, 0.7, 0.2, Wall("friction", 0.2)),)
     assert "obstacle_friction" in _traced(_jaxpr(_scene(Elastic(), obstacles=obs)))

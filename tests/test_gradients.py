@@ -75,12 +75,13 @@ def test_column_runout_gradient_matches_finite_differences(name, value, x64):
     assert g == pytest.approx(fd, rel=0.01)
 
 
-def test_sliding_distance_gradient_wrt_wall_mu(x64):
+@pytest.mark.parametrize("flip", [0.0, 0.99])
+def test_sliding_distance_gradient_wrt_wall_mu(x64, flip):
     th = np.deg2rad(30.0)
     body = Body(Rectangle(0.1, 0.0, 0.2, 0.04), Elastic(E=2e6, nu=0.3, rho=1000.0))
     scene = Scene(domain=((0.0, 1.0), (0.0, 0.2)), dx=0.02, bodies=(body,),
                   gravity=(9.81 * np.sin(th), -9.81 * np.cos(th)),
-                  walls=Walls(bottom=Wall("friction", 0.3)))
+                  walls=Walls(bottom=Wall("friction", 0.3)), flip=flip)
     sim = MPM(scene, dtype="float64")
     base, state = sim.params(), sim.init()
 

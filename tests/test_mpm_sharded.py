@@ -28,7 +28,7 @@ def two_devices():
         "tests/conftest.py asks for two host devices before JAX starts (DIFFGNS_HOST_DEVICES)")
 
 
-def mixed_scene(v_right=0.0) -> Scene:
+def mixed_scene(v_right=0.0, flip=0.0) -> Scene:
     """Three groups with odd particle counts (padding on every device): two sand bodies of
     different friction angles (one group, several bodies: per-particle parameters gathered),
     an elastic block and a fluid body."""
@@ -40,16 +40,18 @@ def mixed_scene(v_right=0.0) -> Scene:
         Body(Rectangle(0.70, 0.0, 0.83, 0.11), Fluid(bulk_modulus=2e4, viscosity=1e-3)),
     )
     return Scene(domain=((0.0, 0.9), (0.0, 0.4)), dx=0.02, bodies=bodies,
-                 walls=Walls.all("friction", mu=0.3), frame_dt=5e-3)
+                 walls=Walls.all("friction", mu=0.3), frame_dt=5e-3, flip=flip)
 
 
 def frames(sim, p, s, n=3):
     return jax.jit(lambda p, s: rollout_jit(sim, p, s, n_frames=n))(p, s)
 
 
-def test_sharded_frames_equal_one_device_frames_with_padding_and_several_groups(x64):
+@pytest.mark.parametrize("flip", [0.0, 0.99])
+def test_sharded_frames_equal_one_device_frames_with_padding_and_several_groups(x64, flip):
+    """Also with a FLIP update: its extra grid channels are summed over the devices too."""
     two_devices()
-    scene = mixed_scene()
+    scene = mixed_scene(flip=flip)
     one, two = MPM(scene, devices=1), MPM(scene, devices=2)
     groups = scene.material_groups()
     assert len(groups) == 3 and any((g.stop - g.start) % 2 for g in groups.values())

@@ -167,6 +167,17 @@ def test_user_dt_above_cfl_limit():
         scene(dt=2.0 * s.stable_dt())
 
 
+@pytest.mark.parametrize("flip", [-0.1, 1.5, float("nan"), "0.9"])
+def test_flip_outside_zero_one_is_rejected(flip):
+    with pytest.raises(SceneError, match=r"Scene\.flip = .* must be a fraction in \[0, 1\]"):
+        scene(flip=flip)
+
+
+def test_flip_is_an_effect_only_when_declared():
+    assert "flip" not in scene().effects and "flip" not in scene(flip=0.0).effects
+    assert "flip" in scene(flip=0.99).effects
+
+
 def test_nonpositive_dt():
     with pytest.raises(SceneError, match=r"Scene\.dt"):
         scene(dt=0.0)
@@ -322,7 +333,7 @@ def mixed_scene(**kw) -> Scene:
     )
 
 
-@pytest.mark.parametrize("kw", [{}, {"max_speed": 3.0}, {"dt": 1e-5}])
+@pytest.mark.parametrize("kw", [{}, {"max_speed": 3.0}, {"dt": 1e-5}, {"flip": 0.99}])
 def test_round_trip_through_toml(tmp_path, kw):
     s = mixed_scene(**kw)
     d = scene_to_dict(s)

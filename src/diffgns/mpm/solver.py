@@ -217,10 +217,12 @@ class MPM:
         X = (state.x - jnp.asarray(self.origin, state.x.dtype)[:, None]) / dx
         idx, w, dpos = stencil(X, self.grid_shape)
         affine = mass * state.C - (dt * 4.0 / dx**2) * state.vol * tau
-        grid = p2g(idx, w, dpos, mass, mass * state.v, affine, n_nodes, dx)
+        flip = "flip" in self.effects  # also scatter the momentum before the forces
+        grid = p2g(idx, w, dpos, mass, mass * state.v, affine, n_nodes, dx,
+                   affine_free=mass * state.C if flip else None)
         if share.axis is not None:
             grid = jax.lax.psum(grid, share.axis)
-        gv = grid_velocity(grid)
+        gv = grid_velocity(grid[:, : d + 1])
         if "gravity" in self.effects:
             gv = gv + dt * params.gravity[:, None]
         if "damping" in self.effects:
@@ -230,8 +232,15 @@ class MPM:
         gv = gv.reshape(d, n_nodes)
         if self.obstacle_nodes:
             gv = boundaries.apply_obstacles(gv, self.obstacle_nodes, params.obstacle_mu)
-        v, C = g2p(idx, w, dpos, gv.reshape(d, *self.grid_shape), dx)
-        x = state.x + dt * v
+        if flip:  # the particle's own velocity plus the grid's change, blended with APIC
+            gv_free = grid_velocity(jnp.concatenate([grid[:, d + 1:], grid[:, d:d + 1]], 1))
+            v_grid, C, dv = g2p(idx, w, dpos, gv.reshape(d, *self.grid_shape), dx,
+                                extra=(gv - gv_free).reshape(d, *self.grid_shape))
+            v = self.scene.flip * (state.v + dv) + (1.0 - self.scene.flip) * v_grid
+        else:
+            v_grid, C = g2p(idx, w, dpos, gv.reshape(d, *self.grid_shape), dx)
+            v = v_grid
+        x = state.x + dt * v_grid  # positions move with the grid velocity
         lo, hi = jnp.asarray(self.lo, x.dtype), jnp.asarray(self.hi, x.dtype)
         # never leave the domain (and the grid), and count it (diffgns.clamp)
         x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0, valid=real)

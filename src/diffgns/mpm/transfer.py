@@ -38,7 +38,7 @@ _ROWS_GATHER = jax.lax.GatherDimensionNumbers(
     offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
 
 
-def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
+def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float, affine_free=None):
     """Scatter mass and MLS momentum to the grid in one scatter-add.
 
     Args:
@@ -48,21 +48,31 @@ def p2g(idx, w, dpos, mass, momentum, affine, n_nodes: int, dx: float):
         affine: (d, d, N) affine momentum matrix (m C - dt vol 4/dx^2 tau), kg/s.
         n_nodes: number of grid nodes.
         dx: cell size, m.
+        affine_free: optional (d, d, N) affine matrix without the stress (m C), kg/s: the
+            momentum before this substep's forces is then scattered too, in the same pass
+            (the grid velocity change a FLIP update needs).
     Returns:
-        (n_nodes, d + 1) grid momentum (x, y[, z]) and mass.
+        (n_nodes, d + 1) grid momentum (x, y[, z]) and mass; with ``affine_free``
+        (n_nodes, 2 d + 1), the momentum before the forces appended.
     """
     d = momentum.shape[0]
     dxs = [dpos[a] * dx for a in range(d)]
-    mv = [w * la._sum([momentum[c][None], *[affine[c, a][None] * dxs[a] for a in range(d)]])
-          for c in range(d)]
-    m = w * mass[None]
+
+    def mls(aff):
+        return [w * la._sum([momentum[c][None], *[aff[c, a][None] * dxs[a] for a in range(d)]])
+                for c in range(d)]
+
+    channels = [*mls(affine), w * mass[None]]
+    if affine_free is not None:
+        channels += mls(affine_free)
+    k = len(channels)
     S = idx.shape[0]
-    # (S, N, d+1) -> one row of 3 consecutive nodes along the last axis per (outer offset,
-    # particle): (S/3 N, 3, d+1), scattered at the row's first node
-    vals = jnp.stack([*mv, m], -1).reshape(S // 3, 3, -1, d + 1).transpose(0, 2, 1, 3)
+    # (S, N, k) -> one row of 3 consecutive nodes along the last axis per (outer offset,
+    # particle): (S/3 N, 3, k), scattered at the row's first node
+    vals = jnp.stack(channels, -1).reshape(S // 3, 3, -1, k).transpose(0, 2, 1, 3)
     # materialise the contributions: fused into the scatter they are recomputed per row
-    vals = jax.lax.optimization_barrier(vals.reshape(-1, 3, d + 1))
-    grid = jnp.zeros((n_nodes, d + 1), vals.dtype)
+    vals = jax.lax.optimization_barrier(vals.reshape(-1, 3, k))
+    grid = jnp.zeros((n_nodes, k), vals.dtype)
     return jax.lax.scatter_add(grid, idx[::3].reshape(-1, 1), vals, _ROWS_SCATTER,
                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
@@ -102,33 +112,40 @@ def _grid_velocity_jvp(primals, tangents):
     return v, dv
 
 
-def g2p(idx, w, dpos, gv: jax.Array, dx: float):
+def g2p(idx, w, dpos, gv: jax.Array, dx: float, extra: jax.Array | None = None):
     """Gather grid velocities back to particles.
 
     Args:
         idx, w, dpos: stencil from :func:`diffgns.mpm.shape.stencil`.
         gv: (d, nx, ny[, nz]) grid velocity, m/s.
         dx: cell size, m.
+        extra: optional (d, nx, ny[, nz]) grid field (e.g. the velocity change of a FLIP
+            update, m/s) interpolated to the particles in the same gather.
     Returns:
-        v: (d, N) particle velocity, m/s; C: (d, d, N) APIC velocity gradient, 1/s.
+        v: (d, N) particle velocity, m/s; C: (d, d, N) APIC velocity gradient, 1/s; with
+        ``extra`` also its (d, N) interpolation.
     """
     d = gv.shape[0]
     if gv.ndim != d + 1 or d not in (2, 3):
         raise ValueError(f"g2p: gv must be (d, nx, ny[, nz]) with d = 2 or 3, got shape "
                          f"{gv.shape}")
     S = 3 ** d
-    flat = gv.reshape(d, -1).T  # (n_nodes, d)
-    rows = jax.lax.gather(flat, idx[::3].reshape(-1, 1), _ROWS_GATHER, (3, d),
-                          mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)  # (S/3 N, 3, d)
-    g = rows.reshape(S // 3, -1, 3, d).transpose(0, 2, 1, 3).reshape(S, -1, d)  # (S, N, d)
+    field = gv if extra is None else jnp.concatenate([gv, extra])
+    k = field.shape[0]
+    flat = field.reshape(k, -1).T  # (n_nodes, k)
+    rows = jax.lax.gather(flat, idx[::3].reshape(-1, 1), _ROWS_GATHER, (3, k),
+                          mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)  # (S/3 N, 3, k)
+    g = rows.reshape(S // 3, -1, 3, k).transpose(0, 2, 1, 3).reshape(S, -1, k)  # (S, N, k)
     gw = [w * g[..., c] for c in range(d)]
-    k = 4.0 / dx
+    k4 = 4.0 / dx
     vs = [la.sum0(gw[c]) for c in range(d)]
     # sum_s gw_s dpos_as = sum_s gw_s off_as - fx_a v, with off_as in {0, 1, 2} constants
     # and -fx_a = dpos[a, 0] (offset 0 is the first column of ``offsets``): no pass over
     # the (S, N) offsets
     off = offsets(d)
-    C = k * jnp.stack([jnp.stack([la.sum0(gw[c], off[a]) + dpos[a, 0] * vs[c]
-                                  for a in range(d)]) for c in range(d)])
-    return jnp.stack(vs), C
+    C = k4 * jnp.stack([jnp.stack([la.sum0(gw[c], off[a]) + dpos[a, 0] * vs[c]
+                                   for a in range(d)]) for c in range(d)])
+    if extra is None:
+        return jnp.stack(vs), C
+    return jnp.stack(vs), C, jnp.stack([la.sum0(w * g[..., c]) for c in range(d, k)])
 

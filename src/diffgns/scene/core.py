@@ -49,6 +49,12 @@ class Scene:
         max_speed: speed bound used by the CFL limit, m/s; default is the largest initial
             speed plus the free-fall speed over the domain diagonal.
         damping: grid velocity damping rate, 1/s (0 = none; for quasi-static problems).
+        flip: fraction in [0, 1] of FLIP in the particle velocity update (0, the default:
+            APIC alone). APIC smooths every velocity field finer than affine once per
+            particle-grid round trip, so it damps a flow more the more substeps a second
+            has; ``flip`` = 0.99 keeps the particle's own velocity plus the grid's change
+            and loses far less (docs/validation.md, "The answer depends on the substep
+            too"). Positions always move with the grid velocity.
     """
 
     domain: tuple = ((0.0, 1.0), (0.0, 1.0))
@@ -63,6 +69,7 @@ class Scene:
     dt: float | None = None
     max_speed: float | None = None
     damping: float = 0.0
+    flip: float = 0.0
     # init=False: dataclasses.replace gives the copy a fresh cache (a shared one returned the
     # first scene's particles for the other)
     _cache: dict = field(default_factory=dict, init=False, compare=False, hash=False,
@@ -123,6 +130,8 @@ class Scene:
             fx.add("obstacles")
         if self.damping > 0:
             fx.add("damping")
+        if self.flip > 0:
+            fx.add("flip")
         return frozenset(fx)
 
     # ------------------------------------------------------------- particles

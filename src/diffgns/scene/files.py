@@ -2,7 +2,8 @@
 
 Layout (a complete, valid scene file; ``tests/test_scene.py`` loads it)::
 
-    [scene]            # domain, dx, gravity, frame_dt, padding, cfl, dt, max_speed, damping
+    [scene]            # domain, dx, gravity, frame_dt, padding, cfl, dt, max_speed, damping,
+                       # flip
     domain = [[0.0, 1.0], [0.0, 0.5]]      # [[xmin, xmax], [ymin, ymax]], m
     dx = 0.01                              # grid cell size, m
     [walls]            # left/right/bottom/top = {kind = "slip"|"sticky"|"friction", mu}
@@ -51,7 +52,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 SCENE_KEYS = {"domain", "dx", "gravity", "frame_dt", "padding", "cfl", "dt", "max_speed",
-              "damping"}
+              "damping", "flip"}
 
 
 def _check_keys(d: dict, allowed: set, where: str) -> None:
@@ -190,6 +191,8 @@ def scene_to_dict(s: Scene) -> dict:
 
     sc = {"domain": [list(ax) for ax in s.domain], "dx": s.dx, "gravity": list(s.gravity or ()),
           "frame_dt": s.frame_dt, "padding": s.padding, "cfl": s.cfl, "damping": s.damping}
+    if s.flip:
+        sc["flip"] = s.flip
     if s.dt is not None:
         sc["dt"] = s.dt
     if s.max_speed is not None:
