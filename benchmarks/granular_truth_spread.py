@@ -13,7 +13,8 @@ as generated, and perturbed by
 
 - ``dt``: substeps 20% shorter (``--dt-factor``, default 0.8; the same model at another
   stable time step; a numerical perturbation of the kind any two correct solvers differ by;
-  0.1 approaches the time-converged MPM), or
+  smaller fractions show how far the answer depends on the substep: with APIC alone it
+  does not converge as the substep shrinks, docs/validation.md), or
 - ``phi``: the friction angle 0.1 degrees higher (a tenth of the inversion tolerance), or
 - ``stiff``: Young's modulus 10x higher, at that material's own stable time step (not a
   small perturbation: how much of the truth is set by the scenes' elastic stiffness, e.g.
@@ -94,7 +95,7 @@ def main(argv=None) -> None:
     ap.add_argument("--perturb", nargs="+", choices=PERTURBATIONS, default=["dt", "phi"])
     ap.add_argument("--dt-factor", type=float, default=0.8,
                     help="the dt perturbation's substep, a fraction of the stable one (default "
-                    "0.8; 0.1 approaches the time-converged MPM)")
+                    "0.8; smaller values show how far the answer depends on the substep)")
     ap.add_argument("--flip", type=float, default=0.0,
                     help="Scene.flip of the unperturbed scenes (default 0: APIC alone, as the "
                     "datasets)")
