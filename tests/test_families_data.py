@@ -96,12 +96,14 @@ def test_cli_refuses_a_bad_box(tmp_path, capsys, boxes, field, words):
     assert not out.exists()
 
 
-@pytest.mark.parametrize("value", ["0", "-2e7", "nan"])
-def test_cli_refuses_a_bad_young_modulus(tmp_path, capsys, value):
+@pytest.mark.parametrize("option, value", [("--young-modulus", "0"),
+                                           ("--young-modulus", "-2e7"),
+                                           ("--young-modulus", "nan"), ("--flip", "1.5"),
+                                           ("--flip", "-0.1")])
+def test_cli_refuses_a_bad_young_modulus_or_flip(tmp_path, capsys, option, value):
     out = tmp_path / "x.h5"
-    assert main(["dataset", "--kind", "granular", "--young-modulus", value,
-                 "--out", str(out)]) == 2
-    assert "--young-modulus" in capsys.readouterr().err
+    assert main(["dataset", "--kind", "granular", option, value, "--out", str(out)]) == 2
+    assert option in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -112,6 +114,7 @@ def test_the_young_modulus_is_part_of_the_recipe_and_redraws_with_it(tmp_path):
 
     stiff = families_recipe(FAMS, 3, 4, young_modulus=2.0e7)
     assert stiff["ranges"]["young_modulus"] == 2.0e7
+    assert families_recipe(FAMS, 3, 4, flip=0.99)["ranges"]["flip"] == 0.99
     assert families_recipe(FAMS, 3, 4)["ranges"]["young_modulus"] == 2.0e6
     assert stiff != families_recipe(FAMS, 3, 4)
     path = tmp_path / "r.h5"
@@ -175,11 +178,15 @@ def test_a_model_trained_on_granular_data_records_its_mpm_and_its_sand(tmp_path)
     src = _granular_source([a, b])
     assert {k: src[k] for k in res} == res
     assert src["material"] == dict(E=2.0e6, nu=0.3, rho=1800.0, cohesion=0.0)
+    assert src["flip"] == 0.0  # files made before the recipe recorded the transfer
     with pytest.raises(InputError, match="different MPMs"):
         _granular_source([a, fake("c.h5", dx=0.1 / 8, particles_per_cell=4)])
     stiff = fake("s.h5", **res, young_modulus=2.0e7)
     with pytest.raises(InputError, match="one sand"):
         _granular_source([a, stiff])
+    flip = fake("f.h5", **res, flip=0.99)
+    with pytest.raises(InputError, match="transfer"):
+        _granular_source([a, flip])
     info = dict(source=dict(_granular_source([stiff]), kind="granular", dt=2.5e-3,
                             bounds=[[0, 0.8], [0, 0.5]], boxes=[[[0, 0.8], [0, 0.35]]]),
                 gns=dict(bounds=[[0, 0.8], [0, 0.5]]), factor=16)
@@ -189,3 +196,12 @@ def test_a_model_trained_on_granular_data_records_its_mpm_and_its_sand(tmp_path)
     check_scene(stiff_scene, info)
     with pytest.raises(UnsupportedSceneError, match=r"E = 2e\+06 \(trained on 2e\+07\)"):
         check_scene(soft_scene, info)
+    # a model of the MPM with a FLIP update refuses an APIC scene, and the other way round
+    info_flip = dict(info, source=dict(info["source"], **_granular_source([flip])))
+    check_scene(soft_scene.replace(flip=0.99), info_flip)
+    with pytest.raises(UnsupportedSceneError, match="flip = 0, but the model emulates the "
+                       "MPM with flip = 0.99"):
+        check_scene(soft_scene, info_flip)
+    with pytest.raises(UnsupportedSceneError, match="flip = 0.99, but"):
+        check_scene(soft_scene.replace(flip=0.99), dict(info, source=dict(
+            info["source"], **_granular_source([a]))))

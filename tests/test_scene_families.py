@@ -55,9 +55,10 @@ def test_adding_held_out_families_leaves_every_training_draw_unchanged():
 
 
 @pytest.mark.parametrize("family", FAMILIES)
-def test_young_modulus_sets_every_bodys_sand_and_leaves_the_draw_unchanged(family):
+def test_young_modulus_and_flip_leave_the_draw_unchanged(family):
     """A stiffer-sand set (``--young-modulus``) is the same draw as the default one: only the
-    sand's E differs, and the MPM takes the smaller stable substep that E calls for."""
+    sand's E differs, and the MPM takes the smaller stable substep that E calls for; a set
+    with another transfer (``--flip``) differs only in the scene's ``flip``."""
     soft, d_soft = random_sample(family, 3)
     stiff, d_stiff = random_sample(family, 3, young_modulus=2.0e7)
     assert d_soft == d_stiff and soft.n_particles == stiff.n_particles
@@ -66,7 +67,10 @@ def test_young_modulus_sets_every_bodys_sand_and_leaves_the_draw_unchanged(famil
     assert all(b.material.friction_angle == d_soft["friction_angle"] for b in stiff.bodies)
     # c_p grows by sqrt(10) (the speed bound adds to it): more than twice the substeps
     assert stiff.substeps > 2 * soft.substeps and stiff.frame_dt == soft.frame_dt
-
+    # the transfer likewise: the same draw, the MPM's Scene.flip set
+    flip, d_flip = random_sample(family, 3, flip=0.99)
+    assert d_flip == d_soft and flip.flip == 0.99 and soft.flip == 0.0
+    assert flip.replace(flip=0.0) == soft
 
 def _check_valid(family: str, seed: int, ranges: FamilyRanges, **kw) -> None:
     scene, d = random_sample(family, seed, **kw)
@@ -173,6 +177,7 @@ def test_plan_is_stable_and_held_out_seeds_are_disjoint():
     (dict(family="squares", seed=0, size=(0.5, 0.6)), "could not place"),
     (dict(family="squares", seed=0, young_modulus=0.0), "young_modulus"),
     (dict(family="squares", seed=0, young_modulus=float("nan")), "young_modulus"),
+    (dict(family="squares", seed=0, flip=1.5), "flip"),
 ])
 def test_bad_ranges_are_refused(kw, field):
     with pytest.raises(SceneError, match=field):

@@ -137,6 +137,8 @@ def granular_kw(args) -> dict:
         kw["boxes"] = tuple(args.boxes)
     if getattr(args, "young_modulus", None) is not None:
         kw["young_modulus"] = args.young_modulus
+    if getattr(args, "flip", None) is not None:
+        kw["flip"] = args.flip
     return kw
 
 

@@ -15,6 +15,7 @@ from diffgns.cli.checks import (
     frames,
     granular_kw,
     positive,
+    probability,
     squares_kw,
 )
 
@@ -227,6 +228,9 @@ def register(sub) -> None:
     d.add_argument("--young-modulus", type=positive, default=None, metavar="PA",
                    help="granular: the sand's Young's modulus E in Pa, > 0 (default 2e6; the "
                    "MPM's substep shrinks as 1/sqrt(E), so 2e7 costs ~3.2x the substeps)")
+    d.add_argument("--flip", type=probability, default=None, metavar="F",
+                   help="granular: the MPM's FLIP fraction Scene.flip in [0, 1] (default 0: "
+                   "APIC alone; 0.99 keeps the answer nearly independent of the substep)")
     d.add_argument("--out", required=True,
                    help="output .h5 file; built as <out>.partial and renamed when complete; "
                    "an existing file or .partial made by the same recipe is resumed")

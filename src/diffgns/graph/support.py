@@ -65,6 +65,8 @@ class ModelSource:
         frame_stride: MPM frames per GNS frame.
         material: the training sand's ``E`` (Pa), ``nu``, ``rho`` (kg/m^3), ``cohesion`` (Pa).
         kind: the scene family of the training data (e.g. "column"), for messages.
+        flip: the training MPM's ``Scene.flip`` (0: APIC alone, every model made before it
+            was recorded).
     """
 
     bounds: tuple
@@ -75,6 +77,7 @@ class ModelSource:
     frame_stride: int
     material: dict = field(default_factory=dict)
     kind: str = "?"
+    flip: float = 0.0
 
     @classmethod
     def from_info(cls, info: dict) -> ModelSource:
@@ -93,7 +96,7 @@ class ModelSource:
                                                   DEFAULT_PARTICLES_PER_CELL)),
                    frame_dt=float(src.get("dt", 2.5e-3)), factor=int(info.get("factor", 1)),
                    frame_stride=int(info.get("frame_stride", 1)), material=material,
-                   kind=str(src.get("kind", "?")))
+                   kind=str(src.get("kind", "?")), flip=float(src.get("flip", 0.0)))
 
     @property
     def dim(self) -> int:
@@ -199,6 +202,9 @@ def check_scene(scene: Scene, info: dict, resolution: str = "exact",
                        "of the training data")
     elif len(ppcs) > 1:
         why.append(f"its bodies have different particles per cell {ppcs}")
+    if not _close(scene.flip, src.flip):
+        why.append(f"its MPM transfer has flip = {scene.flip:g}, but the model emulates the "
+                   f"MPM with flip = {src.flip:g} (Scene.flip; the answer depends on it)")
     if not _close(scene.frame_dt, src.frame_dt):
         why.append(f"its frame_dt = {scene.frame_dt:g} s gives GNS frames of "
                    f"{scene.frame_dt * src.frame_stride:g} s (frame_dt x frame_stride "

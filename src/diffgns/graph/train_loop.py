@@ -116,9 +116,10 @@ def average_models(paths, out: str | Path) -> Path:
 
 def _granular_source(paths) -> dict:
     """What the MPM of the scene-family datasets ``paths`` was (their recipes): ``dx`` (m),
-    ``particles_per_cell`` and the sand (``material``: E, nu, rho, cohesion; Pa, kg/m^3), so
-    that :func:`~diffgns.graph.support.check_scene` refuses a scene at another resolution or
-    of another sand. Datasets that differ in any of them are refused."""
+    ``particles_per_cell``, its transfer (``flip``) and the sand (``material``: E, nu, rho,
+    cohesion; Pa, kg/m^3), so that :func:`~diffgns.graph.support.check_scene` refuses a
+    scene at another resolution, with another transfer or of another sand. Datasets that
+    differ in any of them are refused."""
     from diffgns.io.families_data import read_ranges
     from diffgns.scene.families import FamilyRanges
     from diffgns.scene.materials import Sand
@@ -126,14 +127,15 @@ def _granular_source(paths) -> dict:
     got = {}
     for p in paths:
         ranges = read_ranges(p)
-        # files made before the recipe recorded E had the default sand
+        # files made before the recipe recorded E or flip had the defaults
         sand = Sand(E=float(ranges.get("young_modulus", FamilyRanges().young_modulus)))
         got[str(p)] = dict(dx=ranges["dx"], particles_per_cell=ranges["particles_per_cell"],
+                           flip=float(ranges.get("flip", 0.0)),
                            material={k: float(getattr(sand, k))
                                      for k in ("E", "nu", "rho", "cohesion")})
     if len({json.dumps(v, sort_keys=True) for v in got.values()}) > 1:
-        raise InputError("--data", f"the datasets were made by different MPMs (resolution or "
-                         f"sand: {got})", "train on data of one resolution and one sand")
+        raise InputError("--data", f"the datasets were made by different MPMs (resolution, "
+                         f"transfer or sand: {got})", "train on data of one MPM and one sand")
     return next(iter(got.values()))
 
 

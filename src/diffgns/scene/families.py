@@ -81,6 +81,7 @@ class FamilyRanges:
         young_modulus: the sand's Young's modulus E, Pa (default 2 MPa, the reference GNS's
             column data; the MPM's stable substep shrinks as 1/sqrt(E)). Not a draw: every
             scene of a set has the same E, and the random stream does not depend on it.
+        flip: the MPM's ``Scene.flip`` (0: APIC alone, the default); not a draw either.
     """
 
     friction_angle: tuple[float, float] = (15.0, 45.0)
@@ -102,8 +103,12 @@ class FamilyRanges:
     obstacle_mu: float = 0.5
     frame_dt: float = 2.5e-3
     young_modulus: float = 2.0e6
+    flip: float = 0.0
 
     def __post_init__(self):
+        if not (isinstance(self.flip, (int, float)) and 0.0 <= self.flip <= 1.0):
+            raise SceneError(f"FamilyRanges.flip = {self.flip!r} must be a fraction in [0, 1] "
+                             "(the MPM's Scene.flip; 0: APIC alone)")
         if not (math.isfinite(self.young_modulus) and self.young_modulus > 0):
             raise SceneError(f"FamilyRanges.young_modulus = {self.young_modulus} must be a "
                              "finite stiffness > 0 Pa (e.g. 2e6 or 2e7)")
@@ -191,7 +196,7 @@ def random_sample(family: str, seed: int, **ranges) -> tuple[Scene, dict]:
     scene = Scene(domain=((0.0, box[0]), (0.0, box[1])), dx=r.dx, bodies=bodies,
                   walls=Walls(left=Wall("slip"), right=Wall("slip"),
                               bottom=Wall("friction", r.floor_mu), top=Wall("slip")),
-                  obstacles=obstacles, frame_dt=r.frame_dt)
+                  obstacles=obstacles, frame_dt=r.frame_dt, flip=r.flip)
     desc = dict(family=family, seed=int(seed), box=list(box), friction_angle=phi,
                 bodies=[lay.metres(b) for b in lay.bodies],
                 velocities=[list(v) for v in lay.velocities],
