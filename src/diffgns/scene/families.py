@@ -106,9 +106,6 @@ class FamilyRanges:
     flip: float = 0.0
 
     def __post_init__(self):
-        if not (isinstance(self.flip, (int, float)) and 0.0 <= self.flip <= 1.0):
-            raise SceneError(f"FamilyRanges.flip = {self.flip!r} must be a fraction in [0, 1] "
-                             "(the MPM's Scene.flip; 0: APIC alone)")
         if not (math.isfinite(self.young_modulus) and self.young_modulus > 0):
             raise SceneError(f"FamilyRanges.young_modulus = {self.young_modulus} must be a "
                              "finite stiffness > 0 Pa (e.g. 2e6 or 2e7)")
