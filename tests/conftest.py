@@ -45,8 +45,8 @@ SLOW_CASES = {
         146,
     "test_interface_conformance.py::test_gradient_finite_and_checkpointed_equals_plain[mpm]": 65,
     "test_interface_conformance.py::test_jit_equals_eager_and_no_recompilation[hybrid]": 47,
-    # 49 s on a quiet machine (2026-12-07); devices=2 (40 s) runs the same shuffled layout,
-    # with padding, against the scene order
+    # 49 s on a quiet machine (2026-12-06, 23:53 UTC); devices=2 (40 s) runs the same
+    # shuffled layout, with padding, against the scene order
     "test_mpm_sharded.py::test_shuffled_order_gives_the_frames_clamps_and_gradient_of_the_"
     "scene_order[1]": 49,
 }

@@ -189,7 +189,7 @@ def test_geostatic_stress():
     assert slope * h + base == pytest.approx(rho * g * h, rel=0.05)
 
 
-# 17 s on a quiet machine (2026-12-07); the default suite keeps jit = eager and no
+# 17 s on a quiet machine (2026-12-06, 23:53 UTC); the default suite keeps jit = eager and no
 # recompilation for the MPM through test_interface_conformance.py (every float parameter changed)
 @pytest.mark.slow
 def test_jit_equals_eager_and_no_recompilation():
