@@ -167,7 +167,7 @@ def test_user_dt_above_cfl_limit():
         scene(dt=2.0 * s.stable_dt())
 
 
-@pytest.mark.parametrize("flip", [-0.1, 1.5, float("nan"), "0.9"])
+@pytest.mark.parametrize("flip", [-0.1, 1.5, float("nan"), "0.9", True])
 def test_flip_outside_zero_one_is_rejected(flip):
     with pytest.raises(SceneError, match=r"Scene\.flip = .* must be a fraction in \[0, 1\]"):
         scene(flip=flip)

@@ -38,7 +38,8 @@ def validate_scene(s) -> None:
         raise SceneError(f"Scene.cfl = {s.cfl!r} must be in (0, 0.5]; 0.4 is a safe default")
     if not (s.damping >= 0 and math.isfinite(s.damping)):
         raise SceneError(f"Scene.damping = {s.damping!r} must be >= 0 (1/s)")
-    if not (isinstance(s.flip, (int, float)) and 0.0 <= s.flip <= 1.0):
+    if not (isinstance(s.flip, (int, float)) and not isinstance(s.flip, bool)
+            and 0.0 <= s.flip <= 1.0):
         raise SceneError(f"Scene.flip = {s.flip!r} must be a fraction in [0, 1] (0: APIC, "
                          "e.g. 0.99: mostly FLIP)")
     if s.max_speed is not None and not (s.max_speed >= 0 and math.isfinite(s.max_speed)):
