@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import granular_front as gf  # noqa: E402
 import granular_heldout as gh  # noqa: E402
 import granular_impact_probe as gip  # noqa: E402
 import granular_node_tracers as gnt  # noqa: E402
@@ -281,3 +282,33 @@ def test_impact_probe_scores_only_the_impact_frames_and_the_share_along_the_trut
     assert means["cases_with_impacts"] == 1 and means["captured_mean"] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="must both be"):
         gip.impact_summary(pred[:, :4], ref, g, threshold_g=5.0)
+
+
+def _front_records(tmp_path, valid=True, timed_data="data/granular_valid.h5"):
+    """An accuracy record of 3 cases and a timed record of 3 cases (2 threads and pinned)."""
+    err = gf.ERROR
+    acc = dict(model="m", data="data/granular_valid.h5",
+               rows=[{err: e, "flow_runout_rel_error": 0.1} for e in (0.1, 0.2, 0.6)])
+    timed_rows = [{err: 0.0, "speedup_vs_mpm_stable": s} for s in (2.0, 9.0, 4.0)]
+    timed = dict(model="m", data=timed_data, valid=valid, rows=timed_rows,
+                 protocol=dict(date_utc="2026-12-07T00:00:00+00:00",
+                               load_before_1_5_15=[0.5 if valid else 3.0, 1, 1]),
+                 one_thread_pinned=dict(rows=[{"speedup_vs_mpm_stable": s} for s in (1, 3, 8)]))
+    a, t = tmp_path / "acc.json", tmp_path / "timed.json"
+    a.write_text(json.dumps(acc))
+    t.write_text(json.dumps(timed))
+    return str(a), str(t)
+
+
+def test_front_point_is_the_mean_error_of_all_cases_and_the_median_timed_speedup(tmp_path):
+    p = gf.point("m", *_front_records(tmp_path))
+    assert p["mean_error"] == pytest.approx(0.3) and p["max_error"] == pytest.approx(0.6)
+    assert (p["speedup_median"], p["speedup_min"], p["speedup_max"]) == (4.0, 2.0, 9.0)
+    assert p["speedup_median_pinned"] == 3.0 and (p["cases"], p["timed_cases"]) == (3, 3)
+
+
+def test_front_refuses_a_loaded_timing_and_a_pair_on_different_data(tmp_path):
+    with pytest.raises(SystemExit, match="not protocol-valid"):
+        gf.point("m", *_front_records(tmp_path, valid=False))
+    with pytest.raises(SystemExit, match="different data"):
+        gf.point("m", *_front_records(tmp_path, timed_data="data/granular_test2.h5"))
