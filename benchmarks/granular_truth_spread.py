@@ -8,7 +8,10 @@ modelling error (and one that is not: ``stiff``), scored exactly as a GNS is sco
         [--out granular_truth_spread.json]
 
 For every scene of ``diffgns dataset --kind granular --seed SEED --n N`` (the validation set
-is seed 1, n 24; ``--young-modulus`` as the dataset's, default 2 MPa) the MPM runs twice:
+is seed 1, n 24; ``--young-modulus`` as the dataset's, default 2 MPa), or of a stored
+family dataset (``--data PATH [--cases I ...]``: its scenes redrawn with its own ranges and
+boxes, checked against its particle counts, as ``granular_heldout.py --timed`` does), the
+MPM runs twice:
 as generated, and perturbed by
 
 - ``dt``: substeps 20% shorter (``--dt-factor``, default 0.8; the same model at another
@@ -83,6 +86,27 @@ def perturbed_run(scene, how: str, n_frames: int, dt_factor: float = 0.8):
     return traj
 
 
+def scenes(args):
+    """``(case index, family, scene seed, Scene)`` of ``--data`` (``--cases`` of it), or of
+    the generator's draw ``--families --n --seed --young-modulus``."""
+    if args.data is None:
+        from diffgns.scene.recipes import family_scenes
+
+        for i, (family, seed, scene, _) in enumerate(
+                family_scenes(args.families, args.n, args.seed,
+                              young_modulus=args.young_modulus)):
+            yield i, family, seed, scene
+        return
+    from granular_heldout import samples, scene_of
+
+    stored = samples(args.data)
+    for i in (range(len(stored)) if args.cases is None else args.cases):
+        if not 0 <= i < len(stored):
+            raise SystemExit(f"--cases: {i} is not a trajectory of {args.data} "
+                             f"({len(stored)} stored)")
+        yield i, stored[i][0], stored[i][1], scene_of(stored[i])
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--families", nargs="+",
@@ -102,6 +126,11 @@ def main(argv=None) -> None:
     ap.add_argument("--young-modulus", type=float, default=2.0e6, metavar="PA",
                     help="the sand's E of the unperturbed scenes, as `diffgns dataset "
                     "--young-modulus` (default 2e6)")
+    ap.add_argument("--data", default=None,
+                    help="a stored family dataset (.h5): its scenes instead of --families/--n/"
+                    "--seed/--young-modulus")
+    ap.add_argument("--cases", nargs="+", type=int, default=None,
+                    help="with --data: these trajectory indices only (default: all)")
     ap.add_argument("--out", default="granular_truth_spread.json")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -112,13 +141,10 @@ def main(argv=None) -> None:
     from diffgns.graph.data import coarse_grain
     from diffgns.graph.evaluate import TARGETS, per_family, score
     from diffgns.mpm import MPM
-    from diffgns.scene.recipes import family_scenes
 
     rows: dict[str, list[dict]] = {p: [] for p in args.perturb}
     fams = []
-    for i, (family, seed, scene, _) in enumerate(
-            family_scenes(args.families, args.n, args.seed,
-                          young_modulus=args.young_modulus)):
+    for i, family, seed, scene in scenes(args):
         scene = scene.replace(flip=args.flip)
         sim = MPM(scene)
         base, _ = sim.run(sim.params(), sim.init(), args.frames)
@@ -151,6 +177,7 @@ def main(argv=None) -> None:
                       f"{t['final_position_error_rel_displacement_max']:<8.4f} "
                       f"{ok:>8}/{t['cases']}")
     path = run.finish(args.out, dict(families=args.families, n=args.n, seed=args.seed,
+                                     data=args.data, cases=args.cases,
                                      young_modulus=args.young_modulus,
                                      dt_factor=args.dt_factor, flip=args.flip,
                                      factor=args.factor, frame_stride=args.frame_stride,

@@ -312,3 +312,19 @@ def test_front_refuses_a_loaded_timing_and_a_pair_on_different_data(tmp_path):
         gf.point("m", *_front_records(tmp_path, valid=False))
     with pytest.raises(SystemExit, match="different data"):
         gf.point("m", *_front_records(tmp_path, timed_data="data/granular_test2.h5"))
+
+
+def test_truth_spread_takes_a_stored_datasets_scenes_by_index(monkeypatch):
+    """``--data``: the stored scenes redrawn (family, seed, case index kept); a case index
+    outside the file is refused."""
+    from diffgns.scene.families import random_scene
+
+    stored = [("columns", 3, random_scene("columns", 3).n_particles, {}),
+              ("squares", 5, random_scene("squares", 5).n_particles, {})]
+    monkeypatch.setattr(gh, "samples", lambda path: stored)
+    args = argparse.Namespace(data="x.h5", cases=[1])
+    ((i, family, seed, scene),) = list(gts.scenes(args))
+    assert (i, family, seed) == (1, "squares", 5)
+    assert scene.n_particles == random_scene("squares", 5).n_particles
+    with pytest.raises(SystemExit, match="not a trajectory of x.h5"):
+        list(gts.scenes(argparse.Namespace(data="x.h5", cases=[2])))
