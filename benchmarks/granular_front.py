@@ -25,11 +25,12 @@ import protocol
 RESULTS = protocol.RESULTS_DIR
 ERROR = "final_position_error_rel_displacement"
 TARGET_ERROR, TARGET_SPEEDUP = 0.05, 10.0
+LABEL_OFFSETS = ((5, 5), (5, -9), (-5, 5), (-5, -9))  # points, cycled along the sorted points
 
 # label -> (accuracy record, timed record), all under benchmarks/results/.
 DEFAULT_PAIRS = {
     "gns_general": ("granular_valid_general_fs_soup4u8.json",
-                    "granular_valid_gns_general_timed_2026-12-07.json"),
+                    "granular_valid_gns_general_timed_2026-12-07b.json"),
     "soup4": ("granular_valid_general_fs_soup4.json", "granular_valid_general_fs_soup4_timed.json"),
     "r1b": ("granular_valid_general_fs_r1b.json", "granular_valid_general_fs_r1b_timed.json"),
     "r2 (stride 2)": ("granular_valid_general_fs_r2.json",
@@ -44,6 +45,12 @@ DEFAULT_PAIRS = {
                          "granular_valid_c32b_timed_2026-12-07.json"),
     "c32m3 (latent 32, 3 steps)": ("granular_valid_general_fs_c32m3.json",
                                    "granular_valid_c32m3_timed_2026-12-07.json"),
+    "c3b_u8": ("granular_valid_general_fs_c3b_u8.json",
+               "granular_valid_c3b_u8_timed_2026-12-07b.json"),
+    "c32m3b": ("granular_valid_general_fs_c32m3b.json",
+               "granular_valid_c32m3b_timed_2026-12-07b.json"),
+    "c32m3b_u8": ("granular_valid_general_fs_c32m3b_u8.json",
+                  "granular_valid_c32m3b_u8_timed_2026-12-07b.json"),
 }
 
 
@@ -97,16 +104,16 @@ def plot(points: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7.5, 5))
     ax.fill_between([TARGET_SPEEDUP, 40], 0.01, TARGET_ERROR, color="tab:green", alpha=0.15,
                     label=f"issue 21's targets (≥ {TARGET_SPEEDUP:g}×, ≤ {TARGET_ERROR:g})")
-    for i, p in enumerate(points):  # sorted by speed-up: alternate labels above and below
+    for i, p in enumerate(points):  # sorted by speed-up: labels go round the point
         ax.errorbar(p["speedup_median"], p["mean_error"],
                     xerr=[[p["speedup_median"] - p["speedup_min"]],
                           [p["speedup_max"] - p["speedup_median"]]],
                     fmt="o", color="tab:red", ecolor="0.6", ms=5, capsize=2, zorder=3)
         if p["speedup_median_pinned"]:
             ax.plot(p["speedup_median_pinned"], p["mean_error"], "x", color="tab:blue", zorder=3)
-        ax.annotate(f"{p['label']} ({p['timed_date_utc'][:10]})",
-                    (p["speedup_median"], p["mean_error"]), fontsize=6,
-                    xytext=(4, 5 if i % 2 else -10), textcoords="offset points")
+        ax.annotate(p["label"], (p["speedup_median"], p["mean_error"]), fontsize=6,
+                    xytext=LABEL_OFFSETS[i % len(LABEL_OFFSETS)], textcoords="offset points",
+                    ha="left" if LABEL_OFFSETS[i % len(LABEL_OFFSETS)][0] > 0 else "right")
     ax.plot([], [], "o", color="tab:red", label="2 threads: median (bar: min–max of 8 cases)")
     ax.plot([], [], "x", color="tab:blue", label="1 thread pinned: median")
     ax.set_xscale("log")
@@ -115,7 +122,9 @@ def plot(points: list[dict], path: Path) -> None:
     ax.set_ylim(0.03, 1)
     ax.set_xlabel("cheaper than the stable-dt MPM per simulated second (same-run ratio)")
     ax.set_ylabel("mean final position error / displacement (validation)")
-    ax.set_title("General granular GNS: accuracy against cost", fontsize=10)
+    ax.set_title("General granular GNS: accuracy against cost (timed records of "
+                 f"{min(p['timed_date_utc'][:10] for p in points)} to "
+                 f"{max(p['timed_date_utc'][:10] for p in points)})", fontsize=9)
     ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
