@@ -17,12 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 from pathlib import Path
 
 import protocol
 
-RESULTS = protocol.RESULTS_DIR
 ERROR = "final_position_error_rel_displacement"
 TARGET_ERROR, TARGET_SPEEDUP = 0.05, 10.0
 LABEL_OFFSETS = ((5, 5), (5, -9), (-5, 5), (-5, -9))  # points, cycled along the sorted points
@@ -136,23 +134,24 @@ def main(argv=None) -> None:
     ap.add_argument("--pair", nargs=3, action="append", metavar=("LABEL", "ACCURACY", "TIMED"),
                     help="a model's accuracy and timed records (default: the committed set)")
     ap.add_argument("--out", default="granular_front", help="results/<out>.json and .png")
+    protocol.add_arguments(ap)
     args = ap.parse_args(argv)
+    run = protocol.start(args, "granular_front", timed=False)  # no measurement: never refused
     pairs = args.pair or [(k, *v) for k, v in DEFAULT_PAIRS.items()]
     points = sorted((point(*p) for p in pairs), key=lambda p: p["speedup_median"])
-    json_path = protocol.results_path(f"{args.out}.json")
-    json_path.write_text(json.dumps(dict(benchmark="granular_front", command=" ".join(sys.argv),
-                                         targets=dict(error=TARGET_ERROR,
-                                                      speedup=TARGET_SPEEDUP),
-                                         points=points), indent=1))
-    plot(points, json_path.with_suffix(".png"))
-    print(f"{'model':<28} {'error':>6} {'runout':>6} {'speed-up 2 thr (min-max)':>26} "
-          f"{'pinned':>7}  timed")
+    run.print(f"{'model':<28} {'error':>6} {'runout':>6} {'speed-up 2 thr (min-max)':>26} "
+              f"{'pinned':>7}  timed")
     for p in points:
         pin = f"{p['speedup_median_pinned']:.1f}x" if p["speedup_median_pinned"] else "-"
-        print(f"{p['label']:<28} {p['mean_error']:>6.3f} {p['mean_runout_error']:>6.3f} "
-              f"{p['speedup_median']:>8.1f}x ({p['speedup_min']:.1f}-{p['speedup_max']:.1f}x)"
-              f"{'':>7} {pin:>7}  {p['timed_date_utc']}, load {p['timed_load_1min']:.2f}")
-    print(f"wrote {json_path} and {json_path.with_suffix('.png')}")
+        run.print(f"{p['label']:<28} {p['mean_error']:>6.3f} {p['mean_runout_error']:>6.3f} "
+                  f"{p['speedup_median']:>8.1f}x ({p['speedup_min']:.1f}-"
+                  f"{p['speedup_max']:.1f}x){'':>7} {pin:>7}  {p['timed_date_utc']}, load "
+                  f"{p['timed_load_1min']:.2f}")
+    path = run.finish(f"{args.out}.json",
+                      dict(targets=dict(error=TARGET_ERROR, speedup=TARGET_SPEEDUP),
+                           points=points),
+                      figures=lambda json_path: plot(points, json_path.with_suffix(".png")))
+    run.print(f"wrote {path} and {path.with_suffix('.png')}")
 
 
 if __name__ == "__main__":
