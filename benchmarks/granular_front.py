@@ -60,7 +60,8 @@ def read(name: str | Path) -> dict:
 
 
 def point(label: str, accuracy_file: str, timed_file: str) -> dict:
-    """One model's point: mean error over the accuracy record's cases, median speed-up of the
+    """One model's point: the accuracy record's own mean error over its cases (its ``all``
+    row of :func:`diffgns.graph.evaluate.per_family`), median speed-up of the
     timed record (2 threads and, when recorded, 1 thread pinned), with both records'
     provenance. Refuses an invalid timed record or a pair on different data. The two records
     may name one model two ways (``gns_general`` is ``soup4u8``'s weights, shipped); the
@@ -77,12 +78,12 @@ def point(label: str, accuracy_file: str, timed_file: str) -> dict:
                          f"different data ({acc.get('data')} against {timed.get('data')})")
     pinned = timed.get("one_thread_pinned")
     pinned_rows = pinned.get("rows", []) if isinstance(pinned, dict) else []
-    errors = [r[ERROR] for r in acc["rows"]]
+    every = acc["table"]["all"]  # per_family's aggregate over the record's cases
     out = dict(
         label=label, model_accuracy=acc.get("model"), model_timed=timed.get("model"),
-        cases=len(errors), timed_cases=len(rows),
-        mean_error=statistics.fmean(errors), max_error=max(errors),
-        mean_runout_error=statistics.fmean(r["flow_runout_rel_error"] for r in acc["rows"]),
+        cases=every["cases"], timed_cases=len(rows),
+        mean_error=every[f"{ERROR}_mean"], max_error=every[f"{ERROR}_max"],
+        mean_runout_error=every["flow_runout_rel_error_mean"],
         speedup_median=statistics.median(r["speedup_vs_mpm_stable"] for r in rows),
         speedup_min=min(r["speedup_vs_mpm_stable"] for r in rows),
         speedup_max=max(r["speedup_vs_mpm_stable"] for r in rows),

@@ -287,8 +287,12 @@ def test_impact_probe_scores_only_the_impact_frames_and_the_share_along_the_trut
 def _front_records(tmp_path, valid=True, timed_data="data/granular_valid.h5"):
     """An accuracy record of 3 cases and a timed record of 3 cases (2 threads and pinned)."""
     err = gf.ERROR
-    acc = dict(model="m", data="data/granular_valid.h5",
-               rows=[{err: e, "flow_runout_rel_error": 0.1} for e in (0.1, 0.2, 0.6)])
+    from diffgns.graph.evaluate import per_family
+
+    acc_rows = [{err: e, "flow_runout_rel_error": r, "inside_domain": True, "finite": True}
+                for e, r in ((0.1, 0.1), (0.2, 0.3), (0.6, 0.2))]
+    acc = dict(model="m", data="data/granular_valid.h5", rows=acc_rows,
+               table=per_family(acc_rows, ["squares", "columns", "squares"]))
     timed_rows = [{err: 0.0, "speedup_vs_mpm_stable": s} for s in (2.0, 9.0, 4.0)]
     timed = dict(model="m", data=timed_data, valid=valid, rows=timed_rows,
                  protocol=dict(date_utc="2026-12-07T00:00:00+00:00",
@@ -303,6 +307,7 @@ def _front_records(tmp_path, valid=True, timed_data="data/granular_valid.h5"):
 def test_front_point_is_the_mean_error_of_all_cases_and_the_median_timed_speedup(tmp_path):
     p = gf.point("m", *_front_records(tmp_path))
     assert p["mean_error"] == pytest.approx(0.3) and p["max_error"] == pytest.approx(0.6)
+    assert p["mean_runout_error"] == pytest.approx(0.2)  # all cases, not one family
     assert (p["speedup_median"], p["speedup_min"], p["speedup_max"]) == (4.0, 2.0, 9.0)
     assert p["speedup_median_pinned"] == 3.0 and (p["cases"], p["timed_cases"]) == (3, 3)
 
