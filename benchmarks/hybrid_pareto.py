@@ -61,6 +61,7 @@ from diffgns.hybrid.compare import (
     model_cells,
     score_against,
 )
+from diffgns.hybrid.handoff import PARTICLE_MAPS
 from diffgns.hybrid.simulator import HybridParams, Schedule
 from diffgns.timing import block, interleave, measure
 
@@ -88,7 +89,7 @@ def parse_schedule(spec: str) -> Schedule:
     for o in opts:
         if o in ("reset", "reconstruct", "carry"):
             kw["handoff"] = o
-        elif o in ("rigid", "affine"):
+        elif o in PARTICLE_MAPS:
             kw["particle_map"] = o
         else:
             raise argparse.ArgumentTypeError(f"schedule {spec!r}: unknown option {o!r}")

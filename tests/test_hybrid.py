@@ -9,7 +9,7 @@ import pytest
 from diffgns import MPM
 from diffgns.graph.gns import GNSParams
 from diffgns.graph.train_loop import load_model
-from diffgns.hybrid.handoff import lsq_gradient, node_means, particles_from_nodes
+from diffgns.hybrid.handoff import LSQ_RIDGE, lsq_gradient, node_means, particles_from_nodes
 from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, HybridParams, Schedule
 from diffgns.interface import rollout, rollout_jit, rollout_safe
 from diffgns.metrics import runout
@@ -55,16 +55,53 @@ def test_warmup_shorter_than_history_rejected(model):
 
 
 def test_lsq_gradient_exact_for_linear_field():
+    """Plain least squares (ridge 0) recovers a linear field's gradient exactly; the default
+    ridge shrinks a well-spread neighbourhood's by at most 1 / (1 + 2 ridge)."""
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.uniform(0, 1, (30, 2)))
     G = jnp.array([[0.3, -1.2], [2.0, 0.5]])
     u = x @ G.T + 0.7
     s, r = np.meshgrid(np.arange(30), np.arange(30))
     s, r = jnp.asarray(s.ravel()), jnp.asarray(r.ravel())
-    out = lsq_gradient(u, x, s, r, jnp.ones(s.shape, bool))
+    out = lsq_gradient(u, x, s, r, jnp.ones(s.shape, bool), ridge=0.0)
     np.testing.assert_allclose(out, np.broadcast_to(G, (30, 2, 2)), atol=1e-4)
+    shrunk = np.asarray(lsq_gradient(u, x, s, r, jnp.ones(s.shape, bool)))
+    assert LSQ_RIDGE > 0
+    dx = np.asarray(x)[None] - np.asarray(x)[:, None]  # (30, 30, 2), node i's edges
+    A = np.einsum("ija,ijb->iab", dx, dx)
+    mu = LSQ_RIDGE * np.trace(A, axis1=1, axis2=2)[:, None, None] * np.eye(2)
+    want = np.einsum("ab,ibc,icd->iad", np.asarray(G), A, np.linalg.inv(A + mu))
+    np.testing.assert_allclose(shrunk, want, rtol=1e-3, atol=1e-4)
+    # a node in the middle of a square lattice (isotropic): shrunk by exactly 1 / (1 + 2 ridge)
+    g = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), -1).reshape(-1, 2) * 0.01
+    ul = g @ np.asarray(G).T
+    c = 12  # the centre
+    nb = np.array([k for k in range(25) if k != c and np.abs(g[k] - g[c]).max() < 0.015])
+    out = lsq_gradient(jnp.asarray(ul), jnp.asarray(g), jnp.asarray(nb), jnp.full(len(nb), c),
+                       jnp.ones(len(nb), bool))
+    np.testing.assert_allclose(out[c], np.asarray(G) / (1 + 2 * LSQ_RIDGE), rtol=1e-4)
     lonely = lsq_gradient(u, x, s[:1], r[:1], jnp.ones(1, bool))  # one edge: no gradient
     assert np.all(np.asarray(lonely) == 0)
+
+
+def test_lsq_gradient_of_a_one_node_layer_stays_bounded():
+    """Nodes in a row one node thick (1 cm apart, 0.1 mm of vertical scatter) carrying a
+    field u = 0.01 x plus 0.1 mm of noise (a GNS frame on a deposit spread thin): plain least
+    squares divides the noise by the scatter and reports vertical gradients of order 1; the
+    ridge keeps them at the noise over the spacing, and the along-row gradient intact."""
+    rng = np.random.default_rng(1)
+    n = 40
+    x = np.stack([0.01 * np.arange(n), 1e-4 * rng.standard_normal(n)], -1)
+    u = np.stack([0.01 * x[:, 0], np.zeros(n)], -1) + 1e-4 * rng.standard_normal((n, 2))
+    i, j = np.meshgrid(np.arange(n), np.arange(n))
+    near = (np.abs(i - j) <= 3) & (i != j)
+    s, r = jnp.asarray(i[near]), jnp.asarray(j[near])
+    m = jnp.ones(s.shape, bool)
+    plain = np.asarray(lsq_gradient(jnp.asarray(u), jnp.asarray(x), s, r, m, ridge=0.0))
+    ridged = np.asarray(lsq_gradient(jnp.asarray(u), jnp.asarray(x), s, r, m))
+    assert np.abs(plain[:, :, 1]).max() > 0.5  # d u / d y: noise / scatter
+    assert np.abs(ridged[:, :, 1]).max() < 0.1
+    np.testing.assert_allclose(np.median(ridged[:, 0, 0]), 0.01, rtol=0.15)
 
 
 def test_handoff_moves_particles_with_their_node_and_sets_F():
