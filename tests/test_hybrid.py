@@ -80,8 +80,19 @@ def test_lsq_gradient_exact_for_linear_field():
     out = lsq_gradient(jnp.asarray(ul), jnp.asarray(g), jnp.asarray(nb), jnp.full(len(nb), c),
                        jnp.ones(len(nb), bool))
     np.testing.assert_allclose(out[c], np.asarray(G) / (1 + 2 * LSQ_RIDGE), rtol=1e-4)
-    lonely = lsq_gradient(u, x, s[:1], r[:1], jnp.ones(1, bool))  # one edge: no gradient
+    assert int(s[0]) == int(r[0]) == 0
+    lonely = lsq_gradient(u, x, s[:1], r[:1], jnp.ones(1, bool))  # a self-edge only
     assert np.all(np.asarray(lonely) == 0)
+    # one neighbour (and the self-edge the GNS graph carries): the derivative along the edge,
+    # shrunk by 1 / (1 + ridge), and none across it; plain least squares gives none at all
+    one = jnp.asarray([1, 0]), jnp.asarray([0, 0]), jnp.ones(2, bool)
+    g1 = np.asarray(lsq_gradient(u, x, *one)[0])
+    d = np.asarray(x[1] - x[0])
+    np.testing.assert_allclose(g1 @ d, np.asarray(u[1] - u[0]) / (1 + LSQ_RIDGE), rtol=1e-4)
+    np.testing.assert_allclose(g1 @ np.array([-d[1], d[0]]), 0.0, atol=1e-5)
+    assert np.all(np.asarray(lsq_gradient(u, x, *one, ridge=0.0)[0]) == 0)
+    with pytest.raises(ValueError, match="ridge"):
+        lsq_gradient(u, x, s, r, jnp.ones(s.shape, bool), ridge=-0.1)
 
 
 def test_lsq_gradient_of_a_one_node_layer_stays_bounded():

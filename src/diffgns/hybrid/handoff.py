@@ -87,22 +87,24 @@ def lsq_gradient(u: jax.Array, x: jax.Array, senders, receivers, mask,
         senders, receivers, mask: (E,) graph edges (padding edges have mask False).
         ridge: the ridge as a fraction of ``tr(A_i)`` (>= 0; 0: plain least squares).
 
-    Nodes with fewer than two edges get a zero gradient. A well-spread neighbourhood's
-    gradient is shrunk by about ``1 / (1 + 2 ridge)``; a direction its edges hardly sample
-    (a layer one node thick) gets next to none, where plain least squares divides the
-    noise across the layer by the layer's tiny spread.
+    A node with no edge to another node gets a zero gradient (self-edges carry no ``dX``).
+    A well-spread neighbourhood's gradient is shrunk by about ``1 / (1 + 2 ridge)``; a
+    direction its edges hardly sample (a layer one node thick, or a single neighbour) gets
+    next to none, where plain least squares divides the noise across the layer by the
+    layer's tiny spread (with ``ridge = 0`` such a node gets a zero gradient).
     """
+    if not ridge >= 0:
+        raise ValueError(f"ridge must be >= 0 (a fraction of tr A), got {ridge!r}")
     w = mask.astype(x.dtype)[:, None]
     dx = (x[senders] - x[receivers]) * w
     du = (u[senders] - u[receivers]) * w
     m = x.shape[0]
     A = jax.ops.segment_sum(dx[:, :, None] * dx[:, None, :], receivers, num_segments=m)
     B = jax.ops.segment_sum(du[:, :, None] * dx[:, None, :], receivers, num_segments=m)
-    n_edges = jax.ops.segment_sum(w[:, 0], receivers, num_segments=m)
     tr = A[:, 0, 0] + A[:, 1, 1]
     A = A + ridge * tr[:, None, None] * jnp.eye(2, dtype=A.dtype)
     det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    ok = (n_edges >= 2) & (det > 1e-6 * tr ** 2)
+    ok = det > 1e-6 * tr ** 2  # false where A = 0 (no neighbour)
     safe_det = jnp.where(ok, det, 1.0)
     inv = jnp.stack([jnp.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
                      jnp.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / safe_det[:, None, None]
