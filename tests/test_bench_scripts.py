@@ -23,6 +23,7 @@ import hybrid_pareto as hp  # noqa: E402
 import meshnet_accuracy_speed as mas  # noqa: E402
 import meshnet_runaway as mr  # noqa: E402
 
+from diffgns.graph.evaluate import per_family  # noqa: E402
 from diffgns.hybrid.simulator import Schedule  # noqa: E402
 from diffgns.timing import Interleaved, Sample  # noqa: E402
 
@@ -287,8 +288,6 @@ def test_impact_probe_scores_only_the_impact_frames_and_the_share_along_the_trut
 def _front_records(tmp_path, valid=True, timed_data="data/granular_valid.h5"):
     """An accuracy record of 3 cases and a timed record of 3 cases (2 threads and pinned)."""
     err = gf.ERROR
-    from diffgns.graph.evaluate import per_family
-
     acc_rows = [{err: e, "flow_runout_rel_error": r, "inside_domain": True, "finite": True}
                 for e, r in ((0.1, 0.1), (0.2, 0.3), (0.6, 0.2))]
     acc = dict(model="m", data="data/granular_valid.h5", rows=acc_rows,
