@@ -9,7 +9,13 @@ import pytest
 from diffgns import MPM
 from diffgns.graph.gns import GNSParams
 from diffgns.graph.train_loop import load_model
-from diffgns.hybrid.handoff import LSQ_RIDGE, lsq_gradient, node_means, particles_from_nodes
+from diffgns.hybrid.handoff import (
+    LSQ_RIDGE,
+    lsq_gradient,
+    node_means,
+    particles_from_nodes,
+    within_reach,
+)
 from diffgns.hybrid.simulator import GNS_MODE, MPM_MODE, Hybrid, HybridParams, Schedule
 from diffgns.interface import rollout, rollout_jit, rollout_safe
 from diffgns.metrics import runout
@@ -202,6 +208,65 @@ def test_affine_particle_map_follows_a_linear_node_field():
     spread = lambda y: np.asarray(y - node_means(y, cluster, counts)[cluster].T)  # noqa: E731
     np.testing.assert_allclose(spread(rigid.x), spread(st.x), atol=1e-7)
     assert np.abs(spread(new.x) - spread(st.x)).max() > 1e-4  # the affine map deforms
+
+
+def test_within_reach_shortens_far_offsets_and_keeps_clusters_centred():
+    """Offsets within reach are kept; a longer one is shortened to the reach along its own
+    direction, and the cluster's offsets are re-centred (they still sum to zero)."""
+    r = jnp.asarray([[0.01, -0.005, -0.005, 0.4, -0.2, -0.2],
+                     [0.0, 0.01, -0.01, 0.0, 0.0, 0.0]])
+    cluster = jnp.asarray([0, 0, 0, 1, 1, 1])
+    out = np.asarray(within_reach(r, cluster, 2, 0.03))
+    np.testing.assert_allclose(out[:, :3], r[:, :3], atol=1e-9)  # within reach: unchanged
+    # (0.4, -0.2, -0.2) -> (0.03, -0.03, -0.03), re-centred by their mean -0.01
+    np.testing.assert_allclose(out[:, 3:], [[0.04, -0.02, -0.02], [0, 0, 0]], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(within_reach(r, cluster, 2, None)), r)
+    for bad in (0.0, -0.01):
+        with pytest.raises(ValueError, match="reach must be > 0"):
+            within_reach(r, cluster, 2, bad)
+
+
+def test_affine_map_does_not_extrapolate_beyond_its_reach():
+    """A particle sheared far from its node (0.3 m) gets, without a reach, the node field's
+    gradient times 0.3 m as its velocity (the string of launched particles of a held-out
+    collision); with the reach its affine velocity stays within |grad v| 2 reach, the cluster
+    mean stays the node, and clusters within reach follow the affine field as before."""
+    sim = MPM(small_scene())
+    st = sim.init()
+    cluster, counts = _quadrants(st)
+    far = int(np.flatnonzero(np.asarray(cluster) == 0)[0])
+    st = st.replace(x=st.x.at[:, far].add(jnp.asarray([0.3, 0.05])))
+    x_node = node_means(st.x, cluster, counts)
+    G = jnp.array([[0.01, 0.02], [-0.01, 0.01]])  # displacement gradient over the frame
+    dt, reach = 0.0025, 0.04
+    disp = jnp.broadcast_to(jnp.asarray([0.001, 0.0]), (4, 2))
+    vel, gv, gu = disp / dt, jnp.broadcast_to(G / dt, (4, 2, 2)), jnp.broadcast_to(G, (4, 2, 2))
+    lo, hi = jnp.asarray(sim.lo), jnp.asarray(sim.hi)
+    args = (st, cluster, x_node, disp, vel, gv, gu, "carry", lo, hi)
+    wide, _, _ = particles_from_nodes(*args)
+    near, clamp, _ = particles_from_nodes(*args, reach=reach)
+    assert int(clamp.moved) == 0
+    g = float(np.linalg.norm(np.asarray(G) / dt, 2))
+    dv_wide = np.linalg.norm(np.asarray(wide.v)[:, far] - np.asarray(vel)[0])
+    dv_near = np.linalg.norm(np.asarray(near.v)[:, far] - np.asarray(vel)[0])
+    r_far = np.asarray(st.x)[:, far] - np.asarray(x_node)[0]
+    assert dv_wide > 0.9 * np.linalg.norm(np.asarray(G) / dt @ r_far)  # extrapolated
+    assert dv_wide > 1.0  # over 1 m/s, from a frame that moved the node 1 mm
+    assert dv_near <= 2 * reach * g + 1e-6
+    c = np.asarray(cluster)
+    np.testing.assert_allclose(node_means(near.x, cluster, counts), x_node + disp, atol=1e-7)
+    mean_v = jax.ops.segment_sum(near.v.T, cluster, num_segments=4) / counts[:, None]
+    np.testing.assert_allclose(mean_v, vel, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(near.x)[:, c != 0], np.asarray(wide.x)[:, c != 0],
+                               atol=1e-7)
+    np.testing.assert_allclose(np.asarray(near.v)[:, c != 0], np.asarray(wide.v)[:, c != 0],
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_hybrid_affine_map_reaches_as_far_as_the_gns_graph(model):
+    gns, _, _ = model
+    hyb = Hybrid(MPM(small_scene()), gns, 2, 4, Schedule())
+    assert hyb.reach == pytest.approx(gns.config.radius)
 
 
 def _quadrants(st):

@@ -223,9 +223,34 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     return x_node + lam[:, cluster] * off
 
 
+def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | None):
+    """(2, N) particle offsets ``r`` from their node, each shortened to at most ``reach`` m
+    (its direction kept), then re-centred so that they still sum to zero over each cluster.
+
+    The affine map evaluates a node's linear field (gradients fitted over the node's graph
+    edges, all shorter than the GNS radius) at each particle's offset. Clusters are fixed at
+    the start, and a flow shears them apart: a particle can end up far beyond the reach of
+    its node's fit (test2 case 20, a collision: 26% of the particles more than one radius
+    from their node at the last frame, up to 0.44 m), where the linear field is an
+    extrapolation. There ``(grad u) r`` and ``(grad v) r`` grow with ``|r|``, and through
+    GNS frame after GNS frame they launched strings of particles across the box
+    (hybrid guide, "Particles beyond their node's reach").
+    ``reach = None``: no limit (the offsets unchanged).
+    """
+    if reach is None:
+        return r
+    if not reach > 0:
+        raise ValueError(f"reach must be > 0 m (or None), got {reach!r}")
+    length = jnp.sqrt(jnp.sum(r * r, axis=0))
+    short = r * jnp.minimum(1.0, reach / jnp.maximum(length, reach))
+    counts = jax.ops.segment_sum(jnp.ones_like(length), cluster, num_segments=n_nodes)
+    mean = jax.ops.segment_sum(short.T, cluster, num_segments=n_nodes) / counts[:, None]
+    return short - mean[cluster].T
+
+
 def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,
                          lo, hi, particle_map: str = "affine", margin: float = 0.0,
-                         obstacles=None):
+                         obstacles=None, reach: float | None = None):
     """MPM state after a GNS frame that moved node ``k`` from ``x_node[k]`` by ``disp[k]``.
 
     Args:
@@ -241,6 +266,9 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
             already (:func:`keep_inside`; the hybrid uses half the MPM particle spacing).
         obstacles: (K, 4) box obstacles ``[x0, y0, x1, y1]`` the map keeps particles out
             of, m (None: none).
+        reach: the affine map's reach, m: the offsets it applies the node gradients to are
+            shortened to at most this (:func:`within_reach`; the hybrid passes the GNS
+            radius). None: unlimited.
 
     Returns:
         ``(state, ClampCount, kept)``: the new particle state, every particle inside the box
@@ -256,12 +284,13 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     Gv = jnp.moveaxis(grad_v[cluster], 0, -1)
     node_new = (x_node + disp)[cluster].T  # (2, N)
     r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
-    step = jnp.einsum("abn,bn->an", Gu, r) if particle_map == "affine" else jnp.zeros_like(r)
-    x = keep_inside(node_new, r, step, cluster, x_node.shape[0], lo, hi, state.x, margin,
-                    obstacles)
+    m = x_node.shape[0]
+    step = jnp.einsum("abn,bn->an", Gu, within_reach(r, cluster, m, reach)) \
+        if particle_map == "affine" else jnp.zeros_like(r)
+    x = keep_inside(node_new, r, step, cluster, m, lo, hi, state.x, margin, obstacles)
     v = vel[cluster].T
     if particle_map == "affine":
-        v = v + jnp.einsum("abn,bn->an", Gv, x - node_new)
+        v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, m, reach))
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
     C = Gv
     kept = jnp.zeros((), jnp.int32)
