@@ -89,8 +89,9 @@ def test_dataset_squares(tmp_path):
 @pytest.mark.slow
 def test_hybrid_command_writes_comparison(tmp_path):
     out = tmp_path / "hyb"
-    rc = main(["hybrid", "--aspect-ratio", "0.75", "--frames", "20", "--gns-frames", "4",
-               "--mpm-frames", "2", "--reference-cells", "12", "--out", str(out)])
+    rc = main(["hybrid", "--model", "gns_columns", "--aspect-ratio", "0.75", "--frames", "20",
+               "--gns-frames", "4", "--mpm-frames", "2", "--reference-cells", "12", "--out",
+               str(out)])
     assert rc == 0
     rows = json.loads((out / "hybrid_comparison.json").read_text())
     labels = [r["label"] for r in rows]
@@ -101,3 +102,28 @@ def test_hybrid_command_writes_comparison(tmp_path):
     assert all(r["clamped_positions"] == 0 for r in rows[2:])  # the GNS and hybrid maps
     assert abs(rows[3]["mpm_fraction"] - 9 / 20) < 1e-9  # 5 warm-up + 2 x 2 refinement
     assert (out / "hybrid.gif").stat().st_size > 0
+
+
+def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(capsys):
+    """``diffgns hybrid`` without schedule options runs ``Schedule()`` (the schedule never
+    worse than the GNS alone on the held-out family sets), its help states those counts,
+    and without ``--model`` it takes the most accurate shipped model (as ``invert``)."""
+    import re
+
+    from diffgns.cli import build_parser
+    from diffgns.cli.evaluate import hybrid_schedule
+    from diffgns.hybrid.simulator import Schedule
+
+    args = build_parser().parse_args(["hybrid"])
+    assert args.model is None
+    assert hybrid_schedule(args) == Schedule()
+    given = build_parser().parse_args(["hybrid", "--gns-frames", "5", "--mpm-frames", "0",
+                                       "--warmup", "6"])
+    assert hybrid_schedule(given) == Schedule(warmup=6, gns_frames=5, mpm_frames=0)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["hybrid", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    d = Schedule()
+    for flag, value in (("--warmup", d.warmup), ("--gns-frames", d.gns_frames),
+                        ("--mpm-frames", d.mpm_frames)):
+        assert re.search(rf"{flag} \S+ (?:(?! --).)*?\(default {value}\b", text), flag

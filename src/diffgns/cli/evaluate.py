@@ -78,24 +78,43 @@ def _rollout_mesh(args) -> int:
     return 0
 
 
+def hybrid_schedule(args):
+    """The :class:`~diffgns.hybrid.simulator.Schedule` of ``diffgns hybrid``'s arguments;
+    the counts not given are ``Schedule()``'s defaults."""
+    from diffgns.hybrid.simulator import Schedule
+
+    default = Schedule()
+    return Schedule(warmup=default.warmup if args.warmup is None else args.warmup,
+                    gns_frames=default.gns_frames if args.gns_frames is None
+                    else args.gns_frames,
+                    mpm_frames=default.mpm_frames if args.mpm_frames is None
+                    else args.mpm_frames, handoff=args.handoff,
+                    adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
+
+
 def _hybrid(args) -> int:
     import jax.numpy as jnp
 
     from diffgns.clamp import clamp_warning
     from diffgns.graph.train_loop import load_model
     from diffgns.hybrid.compare import compare, compare_scene
-    from diffgns.hybrid.simulator import Schedule
+    from diffgns.inverse.simulators import DEFAULT_MODEL, default_model
     from diffgns.io.figures import animate
     from diffgns.trajectory import Trajectory
 
-    sched = Schedule(warmup=args.warmup, gns_frames=args.gns_frames,
-                     mpm_frames=args.mpm_frames, handoff=args.handoff,
-                     adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
-    model = load_model(model_folder(args.model))
+    sched = hybrid_schedule(args)
+    scene = None
     if args.scene:
         from diffgns.scene.files import load_scene
 
         scene = load_scene(args.scene)
+    if args.model is None:
+        args.model = default_model(scene) if scene is not None else DEFAULT_MODEL
+        print(f"model: {args.model} (the most accurate shipped model for this scene; "
+              "--model to choose)", flush=True)
+    print(f"schedule: {sched.label}, {sched.warmup} MPM warm-up frames", flush=True)
+    model = load_model(model_folder(args.model))
+    if scene is not None:
         reference = scene.replace(dx=scene.dx / args.reference_refine)
         out = compare_scene(model, scene, reference, sched, args.frames)
     else:
@@ -142,7 +161,10 @@ def register(sub) -> None:
 
     h = sub.add_parser("hybrid", help="hybrid GNS/MPM run of a scene (default: a column "
                        "collapse of the model's training data) against the MPM and the GNS")
-    h.add_argument("--model", default="gns_columns", help="model folder or shipped name")
+    h.add_argument("--model", default=None,
+                   help="model folder or shipped name (default: the most accurate shipped "
+                   "model for the scene, as `diffgns invert` picks it; gns_cg16_pfn for the "
+                   "column)")
     h.add_argument("--scene", default=None,
                    help="scene TOML file (instead of the column options below); the "
                    "reference MPM has --reference-refine times finer cells")
@@ -153,12 +175,15 @@ def register(sub) -> None:
     h.add_argument("--friction-angle", type=finite, default=27.5,
                    help="friction angle, degrees in (0, 90) (default 27.5)")
     h.add_argument("--frames", type=count, default=125, help="GNS frames, count (default 125)")
-    h.add_argument("--warmup", type=int, default=5,
-                   help="MPM frames before the first GNS frame, count >= 0 (default 5)")
-    h.add_argument("--gns-frames", type=count, default=5,
-                   help="M: GNS frames per segment, count (default 5)")
-    h.add_argument("--mpm-frames", type=int, default=2,
-                   help="K: MPM frames per segment, count >= 0 (default 2)")
+    # defaults None: Schedule()'s (the jax-free parser does not import the hybrid)
+    h.add_argument("--warmup", type=int, default=None,
+                   help="MPM frames before the first GNS frame, count >= 1 (default 5)")
+    h.add_argument("--gns-frames", type=count, default=None,
+                   help="M: GNS frames per segment, count (default 2)")
+    h.add_argument("--mpm-frames", type=int, default=None,
+                   help="K: MPM frames per segment, count >= 0 (default 8: with fewer, the "
+                   "hybrid was worse than the GNS alone on some held-out scenes; hybrid "
+                   "guide)")
     h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"],
                    help="state handed from GNS to MPM: carry the MPM state, reset it, or "
                    "reconstruct it from the nodes (default carry)")
