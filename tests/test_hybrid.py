@@ -453,7 +453,8 @@ def test_keep_inside_limits_each_axis_apart():
     step = jnp.array([[-0.03, 0.03, -0.03, 0.03], [-0.005, 0.0, 0.0, 0.005]])
     cluster = jnp.zeros(4, jnp.int32)
     x_node = jnp.broadcast_to(node[:, None], (2, 4))
-    x = keep_inside(x_node, offset, step, cluster, 1, lo, hi, margin=margin)
+    x, stops = keep_inside(x_node, offset, step, cluster, 1, lo, hi, margin=margin)
+    assert int(stops.moved) == 0
     np.testing.assert_allclose(x[0], node[0] + offset[0] + step[0], atol=1e-7)  # x kept
     assert float(x[1].min()) >= margin - 1e-7  # y limited to the margin
     assert float(x[1, 0]) < float(node[1] + offset[1, 0]) + 1e-7  # but still stretched
@@ -532,7 +533,8 @@ def test_keep_inside_keeps_particles_out_of_an_obstacle():
     step = jnp.array([[-0.03, 0.03, -0.02, 0.02, 0.0, 0.0], [0.0] * 6])
     x_node = nodes[:, cluster]
     x_old = x_node + 0.25 * offset  # where the particles were: all outside the obstacle
-    x = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin, obstacle)
+    x, stops = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin, obstacle)
+    assert int(stops.moved) == 0  # every node outside the obstacle: no particle stopped
     grown_x0 = 0.5 - margin
     assert float(x[0, 1]) <= grown_x0 + 1e-6  # stretched only up to the grown face
     assert float(x[0, 5]) <= grown_x0 + 1e-6  # contracted towards its node
@@ -541,9 +543,45 @@ def test_keep_inside_keeps_particles_out_of_an_obstacle():
     for k in range(3):
         np.testing.assert_allclose(x[:, cluster == k].mean(axis=1), nodes[:, k], atol=1e-6)
     # without the obstacle both clusters would have entered it
-    free = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin)
+    free, _ = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin)
     assert float(free[0, 1]) > 0.5 and float(free[0, 5]) > 0.5
     # a particle already inside the obstacle is exempt: cluster 0 maps as without it
     inside_old = x_old.at[:, 1].set(jnp.array([0.55, 0.05]))
-    y = keep_inside(x_node, offset, step, cluster, 3, lo, hi, inside_old, margin, obstacle)
+    y, _ = keep_inside(x_node, offset, step, cluster, 3, lo, hi, inside_old, margin, obstacle)
     np.testing.assert_allclose(y[:, :2], free[:, :2], atol=1e-7)
+
+
+def test_a_node_inside_an_obstacle_does_not_collapse_its_cluster():
+    """A cluster straddling an obstacle's corner has its mean (its node) inside the obstacle,
+    as the MPM's own cluster means often have. The map no longer contracts it onto its node
+    (16 particles at one point inside a solid, which then sank through it): every particle
+    stays out of the grown obstacle, stopped where its own path enters it, each stop is
+    counted, and a cluster elsewhere is mapped as before."""
+    from diffgns.hybrid.handoff import keep_inside
+
+    lo, hi, margin = jnp.array([0.0, 0.0]), jnp.array([1.0, 0.5]), 0.002
+    obstacle = jnp.array([[0.5, 0.0, 0.6, 0.1]])
+    # cluster 0: two particles on top of the obstacle, two at its left face; their mean
+    # (0.525, 0.0825) is inside it. Cluster 1 far away. Both move 2 cm right, down 2 mm.
+    x_old = jnp.array([[0.55, 0.58, 0.48, 0.49, 0.2, 0.21],
+                       [0.11, 0.12, 0.05, 0.05, 0.3, 0.3]])
+    cluster = jnp.array([0, 0, 0, 0, 1, 1], jnp.int32)
+    nodes_old = jnp.stack([x_old[:, :4].mean(1), x_old[:, 4:].mean(1)], 1)
+    assert 0.5 < float(nodes_old[0, 0]) < 0.6 and 0 < float(nodes_old[1, 0]) < 0.1
+    move = jnp.array([0.02, -0.002])[:, None]
+    x_node = nodes_old[:, cluster] + move
+    offset = x_old - nodes_old[:, cluster]
+    step = 0.01 * offset  # a 1% stretch
+    x, stops = keep_inside(x_node, offset, step, cluster, 2, lo, hi, x_old, margin, obstacle)
+    g = np.asarray(obstacle[0]) + margin * np.array([-1, -1, 1, 1])
+    inside = (np.asarray(x[0]) > g[0]) & (np.asarray(x[0]) < g[2]) \
+        & (np.asarray(x[1]) > g[1]) & (np.asarray(x[1]) < g[3])
+    assert not inside.any()
+    spread = np.linalg.norm(np.asarray(x[:, :4]) - np.asarray(x[:, :4]).mean(1, keepdims=True),
+                            axis=0)
+    assert spread.min() > 0.01  # not collapsed onto the node
+    # the two left-face particles moving right are stopped at the grown face
+    np.testing.assert_allclose(np.asarray(x[0, 2:4]), g[0], atol=1e-6)
+    assert int(stops.moved) == 2 and 0.01 < float(stops.shift) < 0.015
+    # cluster 1, away from the obstacle: the full affine map
+    np.testing.assert_allclose(x[:, 4:], x_node[:, 4:] + offset[:, 4:] + step[:, 4:], atol=1e-7)

@@ -49,7 +49,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from diffgns.clamp import clamp_positions
+from diffgns.clamp import ClampCount, clamp_positions
 
 HANDOFFS = ("reset", "carry", "reconstruct")
 # "reconstruct" trusts the node field's displacement gradient while it changes a cluster's
@@ -172,7 +172,13 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     this, GNS frames pushed particles into obstacles and the next MPM frames threw them out
     (a hybrid K=4 M=4 on a held-out obstacle scene: 5-14 particles inside, then clamps of up
     to 9 mm and a final error 12 times the GNS alone's, issue 21). A node the GNS put inside
-    an obstacle leaves its cluster's particles at the node: the map cannot undo that.
+    an obstacle (where the MPM's own cluster means often are: a cluster's particles on two
+    faces of an obstacle) is not contracted towards for the obstacles: each particle of its
+    cluster stops instead where its own path from ``x_old`` enters an obstacle, so the cluster's
+    mean is no longer exactly its node, and every such stop is counted like a clamp. (Until
+    2026-12-07 such a cluster was contracted onto its node, 16 particles at one point inside
+    the obstacle, which the next MPM frames let sink through it: a held-out long-box
+    collision still moving at the last frame, hybrid guide.)
 
     Args:
         x_node: (2, N) new position of each particle's node (inside the box), m.
@@ -184,7 +190,9 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
         obstacles: (K, 4) box obstacles ``[x0, y0, x1, y1]``, m (None or K = 0: none).
 
     Returns:
-        (2, N) positions, m.
+        ``(positions, stops)``: (2, N) positions, m, and the
+        :class:`~diffgns.clamp.ClampCount` of the particles stopped on an obstacle's face
+        because their node is inside it (zero without ``x_old``).
     """
     eps = 1e-6 * jnp.max(hi - lo)
     lo_p = jnp.broadcast_to((lo + margin)[:, None], x_node.shape)
@@ -219,8 +227,20 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     rigid = x_node + offset
     s = per_cluster(clear(rigid, step))
     off = offset + s[:, cluster] * step
-    lam = per_cluster(clear(x_node, off))
-    return x_node + lam[:, cluster] * off
+    # (N,) the particle's node is inside a grown obstacle: contracting towards it cannot
+    # keep the cluster out, so such a cluster contracts for the box only, and each of its
+    # particles then stops where its own path from x_old enters an obstacle
+    node_in = jnp.any(jnp.all((x_node[None] > grown[:, :2, None])
+                              & (x_node[None] < grown[:, 2:, None]), axis=1), axis=0)
+    lam = per_cluster(jnp.where(node_in[None], largest(x_node, off), clear(x_node, off)))
+    x = x_node + lam[:, cluster] * off
+    if x_old is None:
+        return x, ClampCount.zero(x.dtype)
+    t = jnp.where(node_in, segment_entry(x_old, x - x_old, grown, exempt), 1.0)
+    stopped = x_old + t[None] * (x - x_old)
+    moved = node_in & (t < 1.0)
+    shift = jnp.where(moved, jnp.sqrt(jnp.sum((x - stopped) ** 2, axis=0)), 0.0)
+    return stopped, ClampCount(jnp.sum(moved, dtype=jnp.int32), jnp.max(shift, initial=0.0))
 
 
 def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | None):
@@ -273,7 +293,9 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     Returns:
         ``(state, ClampCount, kept)``: the new particle state, every particle inside the box
         by :func:`keep_inside`; the count is of a final safety clamp, which moves a particle
-        only if its node itself is outside the box (the GNS counts that clamp of the node).
+        only if its node itself is outside the box (the GNS counts that clamp of the node),
+        and of the particles :func:`keep_inside` stopped on an obstacle's face because their
+        node is inside the obstacle.
         ``kept``: int32, particles whose F "reconstruct" left unchanged because the node
         field's area change ``det(I + grad u)`` was outside :data:`RECONSTRUCT_JACOBIAN`
         (always 0 for the other hand-offs).
@@ -287,11 +309,12 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     m = x_node.shape[0]
     step = jnp.einsum("abn,bn->an", Gu, within_reach(r, cluster, m, reach)) \
         if particle_map == "affine" else jnp.zeros_like(r)
-    x = keep_inside(node_new, r, step, cluster, m, lo, hi, state.x, margin, obstacles)
+    x, stops = keep_inside(node_new, r, step, cluster, m, lo, hi, state.x, margin, obstacles)
     v = vel[cluster].T
     if particle_map == "affine":
         v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, m, reach))
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
+    clamp = clamp.merge(stops)
     C = Gv
     kept = jnp.zeros((), jnp.int32)
     if handoff == "reset":
