@@ -519,8 +519,10 @@ def test_segment_entry_stops_a_path_at_the_face_of_a_box():
 def test_keep_inside_keeps_particles_out_of_an_obstacle():
     """A cluster beside an obstacle whose affine term (and, for one cluster, its rigid
     offsets) would carry particles into it: no particle ends inside the obstacle grown by the
-    margin, each cluster's mean stays its node, a cluster far from it is mapped unchanged,
-    and a particle that was already inside is not pushed out by the map."""
+    margin. The affine stretch is scaled back (the cluster's mean stays its node); a rigid
+    offset that would enter it stops its particle on the grown face, counted, without
+    contracting the rest of its cluster; a cluster far from it is mapped unchanged, and a
+    particle that was already inside is not pushed out by the map."""
     from diffgns.hybrid.handoff import keep_inside
 
     lo, hi, margin = jnp.array([0.0, 0.0]), jnp.array([1.0, 0.5]), 0.005
@@ -534,17 +536,20 @@ def test_keep_inside_keeps_particles_out_of_an_obstacle():
     x_node = nodes[:, cluster]
     x_old = x_node + 0.25 * offset  # where the particles were: all outside the obstacle
     x, stops = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin, obstacle)
-    assert int(stops.moved) == 0  # every node outside the obstacle: no particle stopped
     grown_x0 = 0.5 - margin
-    assert float(x[0, 1]) <= grown_x0 + 1e-6  # stretched only up to the grown face
-    assert float(x[0, 5]) <= grown_x0 + 1e-6  # contracted towards its node
+    assert float(x[0, 1]) == pytest.approx(grown_x0, abs=1e-6)  # stretched up to the face
+    np.testing.assert_allclose(x[:, :2].mean(axis=1), nodes[:, 0], atol=1e-6)
     np.testing.assert_allclose(x[:, 2:4], x_node[:, 2:4] + offset[:, 2:4] + step[:, 2:4],
                                atol=1e-7)  # far from the obstacle: unchanged
-    for k in range(3):
-        np.testing.assert_allclose(x[:, cluster == k].mean(axis=1), nodes[:, k], atol=1e-6)
+    # cluster 2: the particle whose rigid offset enters the obstacle stops on its face; the
+    # other keeps its full offset (no contraction), and the stop is counted
+    assert float(x[0, 5]) == pytest.approx(grown_x0, abs=1e-6)
+    assert float(x[0, 4]) == pytest.approx(0.485 - 0.02, abs=1e-7)
+    assert int(stops.moved) == 1
+    assert float(stops.shift) == pytest.approx(0.505 - grown_x0, abs=1e-6)
     # without the obstacle both clusters would have entered it
-    free, _ = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin)
-    assert float(free[0, 1]) > 0.5 and float(free[0, 5]) > 0.5
+    free, free_stops = keep_inside(x_node, offset, step, cluster, 3, lo, hi, x_old, margin)
+    assert float(free[0, 1]) > 0.5 and float(free[0, 5]) > 0.5 and int(free_stops.moved) == 0
     # a particle already inside the obstacle is exempt: cluster 0 maps as without it
     inside_old = x_old.at[:, 1].set(jnp.array([0.55, 0.05]))
     y, _ = keep_inside(x_node, offset, step, cluster, 3, lo, hi, inside_old, margin, obstacle)

@@ -43,6 +43,8 @@ the first particles; a particle already closer is not pushed further): with the 
 as the limit, the stretched clusters still parked their wall-side particles 1 micrometre
 from the walls (11-15 of them on that case), unclamped but on the wall. A clamp remains only
 as a safety net for a node outside the box, and it is counted (:mod:`diffgns.clamp`).
+Box obstacles limit the affine term the same way, and a particle whose own path then enters
+one stops at its face, counted like a clamp (:func:`keep_inside`).
 """
 from __future__ import annotations
 
@@ -148,7 +150,7 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     (``offset``: the rigid offset from the node, ``step``: the affine term). This returns the
     positions with the largest ``s_k`` in [0, 1] that keeps all of cluster ``k``'s particles
     inside their bounds (the affine term falls back towards rigid only as far as needed), and
-    where even the rigid offsets would leave them, the cluster's offsets are then scaled by
+    where even the rigid offsets would leave the box, the cluster's offsets are then scaled by
     the largest ``lam_k`` in [0, 1] that fits (the cluster contracts towards its node, which
     stays its mean). A cluster that fits is mapped unchanged (s = lam = 1).
 
@@ -165,20 +167,23 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     bounds are never closer to a wall than 1e-6 of the box size, so rounding can never put
     a limited particle outside.
 
-    Box ``obstacles`` are walls too: no particle's path of the map enters one (grown by
-    ``margin``; :func:`segment_entry`), with the same two factors (the region outside an
-    obstacle is not a product of intervals, so its limit is one factor for both axes). A
-    particle that was already inside a grown obstacle (``x_old``) is exempt from it. Without
-    this, GNS frames pushed particles into obstacles and the next MPM frames threw them out
-    (a hybrid K=4 M=4 on a held-out obstacle scene: 5-14 particles inside, then clamps of up
-    to 9 mm and a final error 12 times the GNS alone's, issue 21). A node the GNS put inside
-    an obstacle (where the MPM's own cluster means often are: a cluster's particles on two
-    faces of an obstacle) is not contracted towards for the obstacles: each particle of its
-    cluster stops instead where its own path from ``x_old`` enters an obstacle, so the cluster's
-    mean is no longer exactly its node, and every such stop is counted like a clamp. (Until
-    2026-12-07 such a cluster was contracted onto its node, 16 particles at one point inside
-    the obstacle, which the next MPM frames let sink through it: a held-out long-box
-    collision still moving at the last frame, hybrid guide.)
+    Box ``obstacles`` are walls too, handled in two ways. The affine term's ``s_k`` also keeps
+    every particle's path from its rigid position out of them (grown by ``margin``;
+    :func:`segment_entry`; one factor for both axes, as the region outside an obstacle is
+    not a product of intervals). And after the box's limits, each particle whose own path
+    from where it was (``x_old``; without it, from its node) enters a grown obstacle stops at
+    the entry, and is counted like a clamp: the cluster then keeps its shape, and its mean is
+    no longer exactly its node (the next MPM frame's nodes are the particle means again). A
+    particle that was already inside a grown obstacle is exempt from it. Without any
+    obstacle limit, GNS frames pushed particles into obstacles and the next MPM frames threw
+    them out (a hybrid K=4 M=4 on a held-out obstacle scene: 5-14 particles inside, then
+    clamps of up to 9 mm and a final error 12 times the GNS alone's, issue 21). Until
+    2026-12-07 the obstacles also took part in ``lam``, contracting a cluster towards its
+    node: that compressed clusters beside an obstacle (4x denser, they then sank through the
+    sand in the MPM frames), and a node inside an obstacle (where the MPM's own cluster means
+    often are: a cluster's particles on two faces of it) collapsed its 16 particles onto one
+    point inside the solid, which sank through it (hybrid guide, "a node inside an
+    obstacle").
 
     Args:
         x_node: (2, N) new position of each particle's node (inside the box), m.
@@ -191,8 +196,7 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
 
     Returns:
         ``(positions, stops)``: (2, N) positions, m, and the
-        :class:`~diffgns.clamp.ClampCount` of the particles stopped on an obstacle's face
-        because their node is inside it (zero without ``x_old``).
+        :class:`~diffgns.clamp.ClampCount` of the particles stopped on an obstacle's face.
     """
     eps = 1e-6 * jnp.max(hi - lo)
     lo_p = jnp.broadcast_to((lo + margin)[:, None], x_node.shape)
@@ -218,8 +222,9 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
         obstacles = jnp.zeros((0, 4), x_node.dtype)
     grown = jax.lax.stop_gradient(obstacles + margin * jnp.asarray([-1.0, -1.0, 1.0, 1.0],
                                                                    obstacles.dtype))
-    exempt = None if x_old is None else jnp.all(  # (K, N): already inside a grown obstacle
-        (x_old[None] > grown[:, :2, None]) & (x_old[None] < grown[:, 2:, None]), axis=1)
+    start = x_node if x_old is None else x_old
+    exempt = jnp.all(  # (K, N): the particle (or its node) is already inside a grown obstacle
+        (start[None] > grown[:, :2, None]) & (start[None] < grown[:, 2:, None]), axis=1)
 
     def clear(base, d):  # box limits axis by axis, then the obstacles' one factor
         return jnp.minimum(largest(base, d), segment_entry(base, d, grown, exempt)[None])
@@ -227,18 +232,12 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     rigid = x_node + offset
     s = per_cluster(clear(rigid, step))
     off = offset + s[:, cluster] * step
-    # (N,) the particle's node is inside a grown obstacle: contracting towards it cannot
-    # keep the cluster out, so such a cluster contracts for the box only, and each of its
-    # particles then stops where its own path from x_old enters an obstacle
-    node_in = jnp.any(jnp.all((x_node[None] > grown[:, :2, None])
-                              & (x_node[None] < grown[:, 2:, None]), axis=1), axis=0)
-    lam = per_cluster(jnp.where(node_in[None], largest(x_node, off), clear(x_node, off)))
+    lam = per_cluster(largest(x_node, off))
     x = x_node + lam[:, cluster] * off
-    if x_old is None:
-        return x, ClampCount.zero(x.dtype)
-    t = jnp.where(node_in, segment_entry(x_old, x - x_old, grown, exempt), 1.0)
-    stopped = x_old + t[None] * (x - x_old)
-    moved = node_in & (t < 1.0)
+    # obstacles: each particle stops where its own path from where it was enters one
+    t = segment_entry(start, x - start, grown, exempt)
+    stopped = start + t[None] * (x - start)
+    moved = t < 1.0
     shift = jnp.where(moved, jnp.sqrt(jnp.sum((x - stopped) ** 2, axis=0)), 0.0)
     return stopped, ClampCount(jnp.sum(moved, dtype=jnp.int32), jnp.max(shift, initial=0.0))
 
@@ -294,8 +293,7 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         ``(state, ClampCount, kept)``: the new particle state, every particle inside the box
         by :func:`keep_inside`; the count is of a final safety clamp, which moves a particle
         only if its node itself is outside the box (the GNS counts that clamp of the node),
-        and of the particles :func:`keep_inside` stopped on an obstacle's face because their
-        node is inside the obstacle.
+        and of the particles :func:`keep_inside` stopped on an obstacle's face.
         ``kept``: int32, particles whose F "reconstruct" left unchanged because the node
         field's area change ``det(I + grad u)`` was outside :data:`RECONSTRUCT_JACOBIAN`
         (always 0 for the other hand-offs).
