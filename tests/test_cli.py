@@ -127,3 +127,26 @@ def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(ca
     for flag, value in (("--warmup", d.warmup), ("--gns-frames", d.gns_frames),
                         ("--mpm-frames", d.mpm_frames)):
         assert re.search(rf"{flag} \S+ (?:(?! --).)*?\(default {value}\b", text), flag
+
+
+def test_hybrid_reference_defaults_to_twice_the_model_cells(monkeypatch):
+    """Without ``--reference-cells`` the reference MPM has twice the cells across of the runs
+    it scores (for gns_cg16_pfn, 32 against its 16), never the model's own resolution."""
+    from diffgns.cli import build_parser
+    from diffgns.hybrid import compare as cmp
+    from diffgns.inverse.simulators import model_info
+
+    assert build_parser().parse_args(["hybrid"]).reference_cells is None
+    seen = {}
+
+    def fake(model, scene, reference, schedule, n_frames, repeats, labels, cells_across):
+        seen.update(scene_dx=scene.dx, reference_dx=reference.dx, labels=labels)
+        return {}
+
+    monkeypatch.setattr(cmp, "compare_scene", fake)
+    info = model_info("gns_cg16_pfn")
+    cmp.compare((None, None, info), 1.75, 27.5, None, 10)
+    assert seen["labels"] == ("MPM 32 cells (reference)", "MPM 16 cells")
+    assert seen["reference_dx"] == pytest.approx(seen["scene_dx"] / 2)
+    cmp.compare((None, None, info), 1.75, 27.5, None, 10, reference_cells=24)
+    assert seen["labels"][0] == "MPM 24 cells (reference)"

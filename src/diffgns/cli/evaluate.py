@@ -194,8 +194,9 @@ def register(sub) -> None:
     h.add_argument("--cells-across", type=count, default=None,
                    help="MPM cells across the column in GNS/hybrid runs, count (default: the "
                    "model's data)")
-    h.add_argument("--reference-cells", type=count, default=16,
-                   help="cells across the column of the reference MPM, count (default 16)")
+    h.add_argument("--reference-cells", type=count, default=None,
+                   help="cells across the column of the reference MPM, count (default: twice "
+                   "the model's, 32 for gns_cg16_pfn)")
     h.add_argument("--out", default="results/hybrid",
                    help="output folder (default results/hybrid)")
     h.set_defaults(func=_hybrid)

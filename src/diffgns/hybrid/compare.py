@@ -190,14 +190,16 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
 
 
 def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedule,
-            n_frames: int, reference_cells: int = 16, cells_across: int | None = None,
+            n_frames: int, reference_cells: int | None = None, cells_across: int | None = None,
             repeats: int = 3) -> dict:
     """:func:`compare_scene` on the column collapse of the model's training data (its box and
     column width), at the MPM resolution it emulates unless ``cells_across`` is given; the
-    reference is that column at ``reference_cells`` cells across."""
+    reference is that column at ``reference_cells`` cells across (default: twice the cells
+    the GNS and hybrid runs use)."""
     info = model[2]
     own = model_cells(info)
     cells = cells_across or own
+    reference_cells = reference_cells or 2 * cells
     scene = column_scene(aspect_ratio, friction_angle, cells, info)
     reference = column_scene(aspect_ratio, friction_angle, reference_cells, info)
     return compare_scene(model, scene, reference, schedule, n_frames, repeats,
