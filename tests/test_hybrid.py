@@ -590,3 +590,16 @@ def test_a_node_inside_an_obstacle_does_not_collapse_its_cluster():
     assert int(stops.moved) == 2 and 0.01 < float(stops.shift) < 0.015
     # cluster 1, away from the obstacle: the full affine map
     np.testing.assert_allclose(x[:, 4:], x_node[:, 4:] + offset[:, 4:] + step[:, 4:], atol=1e-7)
+
+
+def test_within_reach_has_a_finite_gradient_at_the_node_and_beyond_reach():
+    """A particle exactly at its node (a one-particle cluster) and one beyond reach: the
+    shortening's gradient is finite (no 0/0 from the length's square root)."""
+    r = jnp.asarray([[0.0, 0.1, -0.1], [0.0, 0.0, 0.0]])
+    cluster = jnp.asarray([0, 1, 1])
+    g = jax.grad(lambda y: jnp.sum(within_reach(y, cluster, 2, 0.03) ** 2))(r)
+    assert np.isfinite(np.asarray(g)).all()
+    # beyond reach the shortened offset's length no longer depends on the offset's length
+    g1 = jax.grad(lambda a: within_reach(jnp.asarray([[a, -a]]).repeat(2, 0) * jnp.asarray(
+        [[1.0], [0.0]]), jnp.asarray([0, 0]), 1, 0.03)[0, 0])(0.1)
+    assert float(g1) == pytest.approx(0.0, abs=1e-6)

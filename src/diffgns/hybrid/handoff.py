@@ -238,8 +238,9 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     t = segment_entry(start, x - start, grown, exempt)
     stopped = start + t[None] * (x - start)
     moved = t < 1.0
-    shift = jnp.where(moved, jnp.sqrt(jnp.sum((x - stopped) ** 2, axis=0)), 0.0)
-    return stopped, ClampCount(jnp.sum(moved, dtype=jnp.int32), jnp.max(shift, initial=0.0))
+    d = jax.lax.stop_gradient(x - stopped)  # the count has no gradient, as clamp_positions'
+    shift = jnp.sqrt(jnp.max(jnp.sum(d * d, axis=0), initial=0.0))
+    return stopped, ClampCount(jnp.sum(moved, dtype=jnp.int32), shift)
 
 
 def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | None):
@@ -260,9 +261,10 @@ def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | 
         return r
     if not reach > 0:
         raise ValueError(f"reach must be > 0 m (or None), got {reach!r}")
-    length = jnp.sqrt(jnp.sum(r * r, axis=0))
-    short = r * jnp.minimum(1.0, reach / jnp.maximum(length, reach))
-    counts = jax.ops.segment_sum(jnp.ones_like(length), cluster, num_segments=n_nodes)
+    sq = jnp.sum(r * r, axis=0)
+    far = sq > reach * reach  # the square root only where it is taken (a finite gradient at r = 0)
+    short = r * jnp.where(far, reach / jnp.sqrt(jnp.where(far, sq, 1.0)), 1.0)
+    counts = jax.ops.segment_sum(jnp.ones_like(sq), cluster, num_segments=n_nodes)
     mean = jax.ops.segment_sum(short.T, cluster, num_segments=n_nodes) / counts[:, None]
     return short - mean[cluster].T
 
