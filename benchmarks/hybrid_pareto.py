@@ -61,7 +61,7 @@ from diffgns.hybrid.compare import (
     model_cells,
     score_against,
 )
-from diffgns.hybrid.handoff import PARTICLE_MAPS
+from diffgns.hybrid.handoff import HANDOFFS, PARTICLE_MAPS
 from diffgns.hybrid.simulator import HybridParams, Schedule
 from diffgns.timing import block, interleave, measure
 
@@ -87,7 +87,7 @@ def parse_schedule(spec: str) -> Schedule:
     head, *opts = spec.split(":")
     kw: dict = {}
     for o in opts:
-        if o in ("reset", "reconstruct", "carry"):
+        if o in HANDOFFS:
             kw["handoff"] = o
         elif o in PARTICLE_MAPS:
             kw["particle_map"] = o

@@ -215,15 +215,15 @@ def test_within_reach_shortens_far_offsets_and_keeps_clusters_centred():
     direction, and the cluster's offsets are re-centred (they still sum to zero)."""
     r = jnp.asarray([[0.01, -0.005, -0.005, 0.4, -0.2, -0.2],
                      [0.0, 0.01, -0.01, 0.0, 0.0, 0.0]])
-    cluster = jnp.asarray([0, 0, 0, 1, 1, 1])
-    out = np.asarray(within_reach(r, cluster, 2, 0.03))
+    cluster, counts = jnp.asarray([0, 0, 0, 1, 1, 1]), jnp.asarray([3.0, 3.0])
+    out = np.asarray(within_reach(r, cluster, counts, 0.03))
     np.testing.assert_allclose(out[:, :3], r[:, :3], atol=1e-9)  # within reach: unchanged
     # (0.4, -0.2, -0.2) -> (0.03, -0.03, -0.03), re-centred by their mean -0.01
     np.testing.assert_allclose(out[:, 3:], [[0.04, -0.02, -0.02], [0, 0, 0]], atol=1e-7)
-    np.testing.assert_allclose(np.asarray(within_reach(r, cluster, 2, None)), r)
+    np.testing.assert_allclose(np.asarray(within_reach(r, cluster, counts, None)), r)
     for bad in (0.0, -0.01):
         with pytest.raises(ValueError, match="reach must be > 0"):
-            within_reach(r, cluster, 2, bad)
+            within_reach(r, cluster, counts, bad)
 
 
 def test_affine_map_does_not_extrapolate_beyond_its_reach():
@@ -263,10 +263,23 @@ def test_affine_map_does_not_extrapolate_beyond_its_reach():
                                rtol=1e-6, atol=1e-6)
 
 
-def test_hybrid_affine_map_reaches_as_far_as_the_gns_graph(model):
-    gns, _, _ = model
-    hyb = Hybrid(MPM(small_scene()), gns, 2, 4, Schedule())
-    assert hyb.reach == pytest.approx(gns.config.radius)
+def test_hybrid_affine_map_reaches_as_far_as_the_gns_graph(model, monkeypatch):
+    """The hybrid's GNS frames hand the particle map its model's radius as the reach."""
+    import diffgns.hybrid.simulator as hybrid_module
+
+    gns, params, _ = model
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("reach"))
+        return particles_from_nodes(*args, **kwargs)
+
+    monkeypatch.setattr(hybrid_module, "particles_from_nodes", spy)
+    sim = MPM(small_scene())
+    hyb = Hybrid(sim, gns, 2, 4, Schedule(warmup=5, gns_frames=1, mpm_frames=1))
+    res, _ = hyb.run(HybridParams(sim.params(), params), sim.init(), 7)
+    assert seen and all(r == pytest.approx(gns.config.radius) for r in seen)
+    assert np.isfinite(np.asarray(res.positions)).all()
 
 
 def _quadrants(st):
@@ -596,10 +609,11 @@ def test_within_reach_has_a_finite_gradient_at_the_node_and_beyond_reach():
     """A particle exactly at its node (a one-particle cluster) and one beyond reach: the
     shortening's gradient is finite (no 0/0 from the length's square root)."""
     r = jnp.asarray([[0.0, 0.1, -0.1], [0.0, 0.0, 0.0]])
-    cluster = jnp.asarray([0, 1, 1])
-    g = jax.grad(lambda y: jnp.sum(within_reach(y, cluster, 2, 0.03) ** 2))(r)
+    cluster, counts = jnp.asarray([0, 1, 1]), jnp.asarray([1.0, 2.0])
+    g = jax.grad(lambda y: jnp.sum(within_reach(y, cluster, counts, 0.03) ** 2))(r)
     assert np.isfinite(np.asarray(g)).all()
-    # beyond reach the shortened offset's length no longer depends on the offset's length
-    g1 = jax.grad(lambda a: within_reach(jnp.asarray([[a, -a]]).repeat(2, 0) * jnp.asarray(
-        [[1.0], [0.0]]), jnp.asarray([0, 0]), 1, 0.03)[0, 0])(0.1)
+    # beyond reach the shortened offset no longer grows with the offset
+    pair = lambda a: jnp.stack([jnp.stack([a, -a]), jnp.zeros(2)])  # noqa: E731
+    g1 = jax.grad(lambda a: within_reach(pair(a), jnp.asarray([0, 0]), jnp.asarray([2.0]),
+                                         0.03)[0, 0])(0.1)
     assert float(g1) == pytest.approx(0.0, abs=1e-6)

@@ -44,6 +44,20 @@ class ClampCount(NamedTuple):
         """No clamp (``dtype``: float dtype of ``shift``; default JAX's default float)."""
         return ClampCount(jnp.zeros((), jnp.int32), jnp.zeros((), dtype))
 
+    @staticmethod
+    def between(x: jax.Array, y: jax.Array, axis: int = -1,
+                valid: jax.Array | None = None) -> ClampCount:
+        """The count of a correction that moved positions ``x`` to ``y`` (coordinates along
+        ``axis``): positions that moved, and the largest distance moved, m. No gradient.
+        ``valid``: optional (N,) bool, the positions to count."""
+        d = jax.lax.stop_gradient(y - x)
+        moved = jnp.any(d != 0, axis=axis)
+        d2 = jnp.sum(d * d, axis=axis)
+        if valid is not None:
+            moved, d2 = moved & valid, jnp.where(valid, d2, 0.0)
+        shift = jnp.sqrt(jnp.max(d2, initial=0.0))
+        return ClampCount(jnp.sum(moved, dtype=jnp.int32), shift.astype(x.dtype))
+
     def merge(self, other: ClampCount) -> ClampCount:
         """Both clamps' events: counts added, the larger shift."""
         return ClampCount(self.moved + other.moved,
@@ -66,13 +80,7 @@ def clamp_positions(x: jax.Array, lo: jax.Array, hi: jax.Array, axis: int = -1,
         the gradient of ``jnp.clip``).
     """
     y = jnp.clip(x, lo, hi)
-    d = jax.lax.stop_gradient(y - x)
-    moved = jnp.any(d != 0, axis=axis)
-    d2 = jnp.sum(d * d, axis=axis)
-    if valid is not None:
-        moved, d2 = moved & valid, jnp.where(valid, d2, 0.0)
-    shift = jnp.sqrt(jnp.max(d2, initial=0.0))
-    return y, ClampCount(jnp.sum(moved, dtype=jnp.int32), shift.astype(x.dtype))
+    return y, ClampCount.between(x, y, axis, valid)
 
 
 def clamp_summary(count: Any, shift: Any) -> dict:

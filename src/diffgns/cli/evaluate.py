@@ -83,13 +83,10 @@ def hybrid_schedule(args):
     the counts not given are ``Schedule()``'s defaults."""
     from diffgns.hybrid.simulator import Schedule
 
-    default = Schedule()
-    return Schedule(warmup=default.warmup if args.warmup is None else args.warmup,
-                    gns_frames=default.gns_frames if args.gns_frames is None
-                    else args.gns_frames,
-                    mpm_frames=default.mpm_frames if args.mpm_frames is None
-                    else args.mpm_frames, handoff=args.handoff,
-                    adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
+    counts = {k: getattr(args, k) for k in ("warmup", "gns_frames", "mpm_frames")
+              if getattr(args, k) is not None}
+    return Schedule(**counts, handoff=args.handoff, adaptive_tol=args.adaptive_tol,
+                    particle_map=args.particle_map)
 
 
 def _hybrid(args) -> int:

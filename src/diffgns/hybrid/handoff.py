@@ -236,16 +236,14 @@ def keep_inside(x_node, offset, step, cluster, n_nodes: int, lo, hi, x_old=None,
     x = x_node + lam[:, cluster] * off
     # obstacles: each particle stops where its own path from where it was enters one
     t = segment_entry(start, x - start, grown, exempt)
-    stopped = start + t[None] * (x - start)
-    moved = t < 1.0
-    d = jax.lax.stop_gradient(x - stopped)  # the count has no gradient, as clamp_positions'
-    shift = jnp.sqrt(jnp.max(jnp.sum(d * d, axis=0), initial=0.0))
-    return stopped, ClampCount(jnp.sum(moved, dtype=jnp.int32), shift)
+    stopped = jnp.where(t < 1.0, start + t * (x - start), x)  # exactly x where not stopped
+    return stopped, ClampCount.between(x, stopped, axis=0)
 
 
-def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | None):
+def within_reach(r: jax.Array, cluster: jax.Array, counts: jax.Array, reach: float | None):
     """(2, N) particle offsets ``r`` from their node, each shortened to at most ``reach`` m
-    (its direction kept), then re-centred so that they still sum to zero over each cluster.
+    (its direction kept), then re-centred so that they still sum to zero over each cluster
+    (``cluster`` (N,) node index, ``counts`` (M,) particles per node).
 
     The affine map evaluates a node's linear field (gradients fitted over the node's graph
     edges, all shorter than the GNS radius) at each particle's offset. Clusters are fixed at
@@ -264,8 +262,8 @@ def within_reach(r: jax.Array, cluster: jax.Array, n_nodes: int, reach: float | 
     sq = jnp.sum(r * r, axis=0)
     far = sq > reach * reach  # the square root only where it is taken (a finite gradient at r = 0)
     short = r * jnp.where(far, reach / jnp.sqrt(jnp.where(far, sq, 1.0)), 1.0)
-    counts = jax.ops.segment_sum(jnp.ones_like(sq), cluster, num_segments=n_nodes)
-    mean = jax.ops.segment_sum(short.T, cluster, num_segments=n_nodes) / counts[:, None]
+    mean = jax.ops.segment_sum(short.T, cluster, num_segments=counts.shape[0])
+    mean = mean / counts[:, None].astype(r.dtype)
     return short - mean[cluster].T
 
 
@@ -307,12 +305,14 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
     node_new = (x_node + disp)[cluster].T  # (2, N)
     r = state.x - x_node[cluster].T  # (2, N) offset from the node before the frame
     m = x_node.shape[0]
-    step = jnp.einsum("abn,bn->an", Gu, within_reach(r, cluster, m, reach)) \
+    counts = jax.ops.segment_sum(jnp.ones(cluster.shape, r.dtype), cluster, num_segments=m)
+    step = jnp.einsum("abn,bn->an", Gu, within_reach(r, cluster, counts, reach)) \
         if particle_map == "affine" else jnp.zeros_like(r)
     x, stops = keep_inside(node_new, r, step, cluster, m, lo, hi, state.x, margin, obstacles)
     v = vel[cluster].T
     if particle_map == "affine":
-        v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, m, reach))
+        v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, counts,
+                                                          reach))
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
     clamp = clamp.merge(stops)
     C = Gv

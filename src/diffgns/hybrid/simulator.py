@@ -244,8 +244,6 @@ class Hybrid:
         # the particle map keeps particles half a particle spacing from the walls (m)
         self.margin = 0.5 * min(mpm.scene.dx / np.sqrt(b.particles_per_cell)
                                 for b in mpm.scene.bodies)
-        # the affine map applies a node's gradients no further than its fit reaches (m)
-        self.reach = float(gns.config.radius)
 
     @property
     def n_nodes(self) -> int:
@@ -353,7 +351,8 @@ class Hybrid:
         grad_u = lsq_gradient(disp, x, snd, rcv, msk) if needs_grad_u else jnp.zeros_like(grad_v)
         mpm_state, map_clamp, f_kept = particles_from_nodes(
             s.mpm, self.cluster, x, disp, vel, grad_v, grad_u, sched.handoff, self.lo,
-            self.hi, sched.particle_map, self.margin, self.obstacles, self.reach)
+            self.hi, sched.particle_map, self.margin, self.obstacles,
+            reach=self.gns.config.radius)  # no further than the gradients' fit reaches
         if sched.handoff == "reconstruct":  # plastic return mapping of the new F
             mpm_state = mpm_state.replace(F=self.mpm.stress(params.mpm, mpm_state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the
