@@ -248,8 +248,8 @@ def within_reach(r: jax.Array, cluster: jax.Array, counts: jax.Array, reach: flo
     The affine map evaluates a node's linear field (gradients fitted over the node's graph
     edges, all shorter than the GNS radius) at each particle's offset. Clusters are fixed at
     the start, and a flow shears them apart: a particle can end up far beyond the reach of
-    its node's fit (test2 case 20, a collision: 26% of the particles more than one radius
-    from their node at the last frame, up to 0.44 m), where the linear field is an
+    its node's fit (test2 case 20, two thrown masses: 26% of the particles more than one
+    radius from their node at the last frame, up to 0.44 m), where the linear field is an
     extrapolation. There ``(grad u) r`` and ``(grad v) r`` grow with ``|r|``, and through
     GNS frame after GNS frame they launched strings of particles across the box
     (hybrid guide, "Particles beyond their node's reach").
