@@ -1,7 +1,7 @@
 """Held-out accuracy of a particle GNS per scene family (issue 21's tables).
 
     .venv/bin/python benchmarks/granular_heldout.py --model runs/general/s8/model \
-        --data data/granular_test.h5 [--n 24] [--out granular_heldout]
+        --data data/granular_test.h5 [--n 24] [--families squares ...] [--out granular_heldout]
 
 Rolls the model out from the first ``history + 1`` frames of every trajectory of ``--data``
 (each in its own box, with its obstacles: :meth:`GNS.for_scene`-equivalent
@@ -39,6 +39,9 @@ def main(argv=None) -> None:
     ap.add_argument("--model", required=True, help="model folder or shipped name")
     ap.add_argument("--data", required=True, help="held-out dataset (.h5 with families)")
     ap.add_argument("--n", type=int, default=None, help="first n trajectories only")
+    ap.add_argument("--families", nargs="+", default=None, metavar="FAMILY",
+                    help="only the trajectories of these families (after --n); rows keep "
+                         "their case numbers in the file")
     ap.add_argument("--out", default="granular_heldout.json")
     ap.add_argument("--timed", type=int, default=0, metavar="ROUNDS",
                     help="also time GNS against the stable-dt MPM, ROUNDS interleaved rounds")
@@ -55,13 +58,15 @@ def main(argv=None) -> None:
     trajs, _ = load_trajectories(args.data, int(info.get("factor", 1)),
                                  int(info.get("frame_stride", 1)))
     families = list(read_families(args.data).values())
-    if args.n is not None:
-        trajs, families = trajs[: args.n], families[: args.n]
+    keep = select_cases(families, args.n, args.families)
+    trajs, families = [trajs[i] for i in keep], [families[i] for i in keep]
     res = evaluate(gns, params, trajs)
-    for row, fam in zip(res["rows"], families):
-        row["family"] = fam
+    for row, fam, i in zip(res["rows"], families, keep):
+        row.update(family=fam, case=i)
     if args.timed:
-        for row, ref, sample in zip(res["rows"], trajs, samples(args.data)):
+        drawn = samples(args.data)
+        for row, ref, i in zip(res["rows"], trajs, keep):
+            sample = drawn[i]
             row.update(speed_of_case(gns, params, ref, sample, args.timed))
             run.print(f"case {row['case']:>2} {row['family']:<10}: GNS "
                       f"{row['gns_s_per_sim_s']:.3f}, MPM {row['mpm_stable_s_per_sim_s']:.3f} "
@@ -92,6 +97,22 @@ def main(argv=None) -> None:
     path = run.finish(args.out, dict(model=str(args.model), data=str(args.data),
                                      targets=TARGETS, rows=res["rows"], table=table))
     run.print(f"wrote {path}")
+
+
+def select_cases(families: list[str], n: int | None, wanted: list[str] | None) -> list[int]:
+    """Indices of the cases to score: the first ``n`` (all if None), then only those whose
+    family is in ``wanted`` (all if None). An unknown family or an empty selection is refused."""
+    idx = list(range(len(families) if n is None else min(n, len(families))))
+    if wanted is None:
+        return idx
+    unknown = sorted(set(wanted) - set(families))
+    if unknown:
+        raise SystemExit(f"--families {unknown}: not in the dataset (it has "
+                         f"{sorted(set(families))})")
+    idx = [i for i in idx if families[i] in wanted]
+    if not idx:
+        raise SystemExit(f"--families {wanted}: no case among the first {n}")
+    return idx
 
 
 def samples(path) -> list[tuple]:

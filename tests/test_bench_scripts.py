@@ -212,6 +212,18 @@ def test_heldout_timing_refuses_a_scene_that_does_not_redraw_the_stored_one():
         gh.speed_of_case(None, None, None, ("columns", 3, 7, {}), 1)
 
 
+def test_heldout_selects_cases_by_family_after_n_and_refuses_unknown_families():
+    fams = ["squares", "columns", "obstacles", "collision"] * 2
+    assert gh.select_cases(fams, None, None) == list(range(8))
+    assert gh.select_cases(fams, 6, None) == list(range(6))
+    assert gh.select_cases(fams, None, ["columns", "collision"]) == [1, 3, 5, 7]
+    assert gh.select_cases(fams, 4, ["columns"]) == [1]
+    with pytest.raises(SystemExit, match="not in the dataset"):
+        gh.select_cases(fams, None, ["column"])
+    with pytest.raises(SystemExit, match="no case among the first 1"):
+        gh.select_cases(fams, 1, ["collision"])
+
+
 def test_meshnet_drift_windows_and_the_worst_mean_flow_node(tmp_path):
     """The drift of a rollout equal to the data but for one fluid node pushed 0.3 m/s in its
     last window: that node is the worst, by 0.3 m/s, with both mean velocities; the windows tile

@@ -286,6 +286,14 @@ def test_training_on_two_boxes_with_families_obstacles_and_padding(tmp_path, mon
     assert out["table"]["squares"]["cases"] == 3 and out["table"]["all"]["cases"] == 4
     assert [r["family"] for r in out["rows"]] == ["squares", "squares", "obstacles", "squares"]
     assert all(r["finite"] and r["inside_domain"] for r in out["rows"])
+    # one family only: the rows keep their case numbers in the file, the table its family
+    granular_heldout.main(["--model", str(tmp_path / "run" / "model"), "--data",
+                           str(tmp_path / "g.h5"), "--families", "obstacles", "--out",
+                           str(tmp_path / "o.json")])
+    one = json.loads((tmp_path / "o.json").read_text())
+    assert [r["case"] for r in one["rows"]] == [2] and set(one["table"]) == {"obstacles", "all"}
+    assert one["rows"][0]["final_position_error_rel_displacement"] == pytest.approx(
+        out["rows"][2]["final_position_error_rel_displacement"], rel=1e-5)
 
 
 def test_a_model_without_obstacle_inputs_starts_one_with_them(tmp_path):
