@@ -151,7 +151,7 @@ def worse_than_gns(rows: list[dict], name: str, tol: float = 0.0) -> list[dict]:
 
 def print_tables(run, tables: dict, worse: dict, rows: list[dict]) -> None:
     run.print(f"{'schedule':<10} {'family':<12} {'cases':>5} {'pos err mean/max':>17} "
-              f"{'runout mean/max':>16} {'outside':>7} {'clamped':>12} {'NaN':>4}")
+              f"{'runout mean/max':>16} {'outside':>7} {'clamped':>12} {'NaN':>4} {'met':>6}")
     for name, table in tables.items():
         for fam, t in table.items():
             run.print(f"{name:<10} {fam:<12} {t['cases']:>5} "
@@ -159,7 +159,7 @@ def print_tables(run, tables: dict, worse: dict, rows: list[dict]) -> None:
                       f"{t['flow_runout_rel_error_mean']:>7.3f}/"
                       f"{t['flow_runout_rel_error_max']:<8.3f} {t['outside_domain']:>7} "
                       f"{t['clamped_positions']:>5} in {t['clamped_cases']:>3} "
-                      f"{t['not_finite']:>4}")
+                      f"{t['not_finite']:>4} {t['cases_met']:>3}/{t['cases']:<2}")
     for name, w in worse.items():
         clamps = sum(r["clamped_positions"] for r in rows if r["schedule"] == name)
         run.print(f"{name}: worse than the GNS alone on {len(w)} case(s) "

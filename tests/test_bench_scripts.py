@@ -57,6 +57,17 @@ def test_hybrid_families_lists_exactly_the_cases_where_the_hybrid_is_worse():
     worse = hf.worse_than_gns(rows, "K2M5")
     assert worse == [dict(case=1, family="columns", error=0.12, gns_error=0.10)]
     assert hf.worse_than_gns(rows, "K2M5", tol=0.05) == []
+    # the printed table counts the cases within issue 21's per-case bar
+    for r in rows:
+        r.update(flow_runout_rel_error=0.01, clamped_positions=0)
+    tables = {n: per_family([r for r in rows if r["schedule"] == n],
+                            [r["family"] for r in rows if r["schedule"] == n])
+              for n in ("GNS", "K2M5")}
+    printed = []
+    hf.print_tables(type("Run", (), {"print": lambda self, s: printed.append(s)})(),
+                    tables, {"K2M5": worse}, rows)
+    assert tables["K2M5"]["all"]["cases_met"] == 0 and printed[-1].startswith("K2M5: worse")
+    assert any(line.startswith("K2M5") and line.rstrip().endswith("0/3") for line in printed)
 
 
 def test_hybrid_families_splits_clamps_by_the_simulator_that_made_the_frame():

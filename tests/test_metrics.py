@@ -38,6 +38,12 @@ def test_per_family_summary_flags_any_case_over_a_target():
     assert not t["collision"]["met"]
     assert t["collision"]["clamped_positions"] == 3 and t["collision"]["clamped_cases"] == 1
     assert t["all"]["cases"] == 6 and not t["all"]["met"] and t["all"]["clamped_cases"] == 1
+    # per case: squares 2 of 2; the 6% column, the escaped and the clamped case fail
+    assert [t[f]["cases_met"] for f in ("squares", "columns", "obstacles", "collision",
+                                        "all")] == [2, 0, 0, 1, 3]
+    moving = dict(row(0.01, 0.01), moving_when_ref_at_rest=True)
+    nan = row(float("nan"), 0.01)
+    assert per_family([moving, nan], ["squares"] * 2)["squares"]["cases_met"] == 0
     with pytest.raises(ValueError, match="6 rows for 5"):
         per_family(rows, fams[:5])
 
