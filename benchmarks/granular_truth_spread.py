@@ -4,7 +4,7 @@ modelling error (and one that is not: ``stiff``), scored exactly as a GNS is sco
 
     .venv/bin/python benchmarks/granular_truth_spread.py --families squares columns \
         obstacles collision --n 24 --seed 1 [--factor 16 --frame-stride 2] \
-        [--perturb dt phi stiff] [--young-modulus 2e6] [--flip 0] \
+        [--perturb dt phi stiff jitter] [--jitter 0.25] [--young-modulus 2e6] [--flip 0] \
         [--out granular_truth_spread.json]
 
 For every scene of ``diffgns dataset --kind granular --seed SEED --n N`` (the validation set
@@ -24,6 +24,12 @@ as generated, and perturbed by
   masses that rebound from an impact), or
 - ``stiff_dt``: the substep of ``stiff`` at the scene's own E (the same number of substeps
   without the stiffer sand: what of ``stiff``'s spread is the substep count, not E).
+- ``jitter``: every particle moved at frame 0 by a uniform random offset of up to
+  ``--jitter`` particle spacings per axis (default 0.25), less its node's mean offset, so
+  every node starts at exactly the same position and velocity: the same state for a GNS
+  on these nodes, another arrangement of the particles within them. Its spread is the part
+  of the truth a node-level model cannot know from its input (the nodes are scored with
+  the unperturbed run's clusters).
 
 Both trajectories are reduced to the GNS's nodes (``coarse_grain``: cluster means of
 ``factor`` particles fixed at frame 0, every ``frame_stride``-th frame) and the perturbed one
@@ -42,7 +48,7 @@ import argparse
 
 import protocol
 
-PERTURBATIONS = ("dt", "phi", "stiff", "stiff_dt")
+PERTURBATIONS = ("dt", "phi", "stiff", "stiff_dt", "jitter")
 
 
 def node_spread(positions, factor: int) -> tuple[float, float]:
@@ -74,15 +80,37 @@ def perturbed_scene(scene, how: str, dt_factor: float = 0.8):
     return scene
 
 
-def perturbed_run(scene, how: str, n_frames: int, dt_factor: float = 0.8):
-    """MPM trajectory of ``scene`` perturbed by ``how`` (one of :data:`PERTURBATIONS`)."""
+def jittered(state, cid, amplitude: float, seed: int = 0):
+    """``state`` (an ``MPMState``, x of shape (d, N) in m) with every particle moved by a
+    uniform random offset in ``[-amplitude, amplitude]`` m per axis, less the mean offset of
+    its cluster ``cid`` (N,): every cluster mean is unchanged (to float rounding)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from diffgns.graph.data import cluster_means
+
+    x = np.asarray(state.x, np.float64).T
+    off = np.random.default_rng(seed).uniform(-amplitude, amplitude, x.shape)
+    off -= cluster_means(off, cid)[cid]
+    return state.replace(x=jnp.asarray((x + off).T, state.x.dtype))
+
+
+def perturbed_run(scene, how: str, n_frames: int, dt_factor: float = 0.8, cid=None,
+                  jitter: float = 0.25):
+    """MPM trajectory of ``scene`` perturbed by ``how`` (one of :data:`PERTURBATIONS`);
+    ``jitter`` needs the clusters ``cid`` (N,) and takes ``jitter`` particle spacings."""
     from diffgns.mpm import MPM
 
     sim = MPM(perturbed_scene(scene, how, dt_factor))
-    params = sim.params()
+    params, state = sim.params(), sim.init()
     if how == "phi":
         params = params.replace(friction_angle=params.friction_angle + 0.1)
-    traj, _ = sim.run(params, sim.init(), n_frames)
+    if how == "jitter":
+        if cid is None:
+            raise ValueError("perturbed_run: 'jitter' needs the clusters (cid)")
+        side = round(scene.bodies[0].particles_per_cell ** (1.0 / state.x.shape[0]))
+        state = jittered(state, cid, jitter * scene.dx / side)
+    traj, _ = sim.run(params, state, n_frames)
     return traj
 
 
@@ -120,6 +148,9 @@ def main(argv=None) -> None:
     ap.add_argument("--dt-factor", type=float, default=0.8,
                     help="the dt perturbation's substep, a fraction of the stable one (default "
                     "0.8; smaller values show how far the answer depends on the substep)")
+    ap.add_argument("--jitter", type=float, default=0.25,
+                    help="the jitter perturbation's largest offset per axis, in particle "
+                    "spacings (default 0.25)")
     ap.add_argument("--flip", type=float, default=0.0,
                     help="Scene.flip of the unperturbed scenes (default 0: APIC alone, as the "
                     "datasets)")
@@ -138,7 +169,7 @@ def main(argv=None) -> None:
 
     import numpy as np
 
-    from diffgns.graph.data import coarse_grain
+    from diffgns.graph.data import coarse_grain, coarse_grain_map
     from diffgns.graph.evaluate import TARGETS, per_family, score
     from diffgns.mpm import MPM
 
@@ -148,12 +179,14 @@ def main(argv=None) -> None:
         scene = scene.replace(flip=args.flip)
         sim = MPM(scene)
         base, _ = sim.run(sim.params(), sim.init(), args.frames)
-        ref = coarse_grain(base, args.factor, args.frame_stride)
+        cid = coarse_grain_map(np.asarray(base.positions[0]), args.factor)
+        ref = coarse_grain(base, args.factor, args.frame_stride, cid=cid)
         rms, p99 = node_spread(np.asarray(base.positions), args.factor)
         fams.append(family)
         for how in args.perturb:
-            other = coarse_grain(perturbed_run(scene, how, args.frames, args.dt_factor),
-                                 args.factor, args.frame_stride)
+            other = coarse_grain(perturbed_run(scene, how, args.frames, args.dt_factor, cid,
+                                               args.jitter),
+                                 args.factor, args.frame_stride, cid=cid)
             row = score(other, ref)
             row.update(case=i, family=family, scene_seed=seed, perturbation=how,
                        node_spread_rms_m=rms, node_spread_p99_m=p99)
@@ -180,6 +213,7 @@ def main(argv=None) -> None:
                                      data=args.data, cases=args.cases,
                                      young_modulus=args.young_modulus,
                                      dt_factor=args.dt_factor, flip=args.flip,
+                                     jitter=args.jitter,
                                      factor=args.factor, frame_stride=args.frame_stride,
                                      targets=TARGETS, rows=rows, tables=tables))
     run.print(f"wrote {path}")

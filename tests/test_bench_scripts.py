@@ -196,6 +196,37 @@ def test_truth_spread_dt_perturbation_is_a_shorter_substep_not_another_scene():
     assert 0 < d < 1e-4  # the same flow, not bit-identical: the substep did change
 
 
+def test_truth_spread_jitter_moves_particles_within_their_nodes_only():
+    """The jitter perturbation: another arrangement of the particles within every node, the
+    same nodes (positions and velocities) at frame 0, and the run scored with the unperturbed
+    run's clusters (binning the jittered frame 0 would assign other clusters)."""
+    import numpy as np
+
+    from diffgns.graph.data import coarse_grain, coarse_grain_map
+    from diffgns.mpm import MPM
+    from diffgns.scene.families import random_scene
+
+    scene = random_scene("squares", 3)
+    sim = MPM(scene)
+    base, _ = sim.run(sim.params(), sim.init(), 2)
+    cid = coarse_grain_map(np.asarray(base.positions[0]), 16)
+    other = gts.perturbed_run(scene, "jitter", 2, cid=cid, jitter=0.25)
+    x0, y0 = np.asarray(base.positions[0]), np.asarray(other.positions[0])
+    spacing = scene.dx / 2  # 4 particles per cell in 2D
+    moved = np.abs(y0 - x0).max(axis=-1)
+    assert np.median(moved) > 0.05 * spacing and moved.max() <= 0.5 * spacing + 1e-7
+    a, b = coarse_grain(base, 16, cid=cid), coarse_grain(other, 16, cid=cid)
+    np.testing.assert_allclose(b.positions[0], a.positions[0], atol=1e-6)  # the same nodes
+    np.testing.assert_allclose(b.velocities[0], a.velocities[0], atol=1e-6)
+    assert np.abs(np.asarray(b.positions[-1]) - a.positions[-1]).max() > 0  # another run
+    # the given clusters are the ones coarse_grain would bin from the unperturbed frame 0
+    np.testing.assert_array_equal(coarse_grain(base, 16).positions, a.positions)
+    with pytest.raises(ValueError, match="3 cluster indices"):
+        coarse_grain(base, 16, cid=cid[:3])
+    with pytest.raises(ValueError, match="needs the clusters"):
+        gts.perturbed_run(scene, "jitter", 2)
+
+
 def test_truth_spread_stiff_perturbation_is_ten_times_e_at_its_own_stable_dt():
     from diffgns.scene.families import random_scene
 

@@ -53,15 +53,20 @@ def cluster_means(a: np.ndarray, cid: np.ndarray) -> np.ndarray:
     return out / np.bincount(cid, minlength=n)[:, None]
 
 
-def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1) -> Trajectory:
+def coarse_grain(traj: Trajectory, factor: int, frame_stride: int = 1,
+                 cid: np.ndarray | None = None) -> Trajectory:
     """Nodes = cluster means of ``factor`` particles (:func:`coarse_grain_map`, 2D or 3D);
-    frames every ``frame_stride``-th."""
+    frames every ``frame_stride``-th. ``cid`` (N,) gives the clusters instead (e.g. another
+    run's map of the same particles, whose frame 0 would bin differently)."""
     pos = np.asarray(traj.positions)[::frame_stride]
     vel = np.asarray(traj.velocities)[::frame_stride]
     ptype = np.asarray(traj.particle_type)
     mat = np.asarray(traj.material)
-    if factor > 1:
-        cid = coarse_grain_map(pos[0], factor)
+    if cid is not None and len(cid) != pos.shape[1]:
+        raise ValueError(f"coarse_grain: {len(cid)} cluster indices for {pos.shape[1]} "
+                         f"particles")
+    if factor > 1 or cid is not None:
+        cid = coarse_grain_map(pos[0], factor) if cid is None else np.asarray(cid)
         n = cid.max() + 1
         pos, vel = cluster_means(pos, cid), cluster_means(vel, cid)
         first = np.zeros(n, np.int64)
