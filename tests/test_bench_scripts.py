@@ -17,6 +17,7 @@ import granular_front as gf  # noqa: E402
 import granular_heldout as gh  # noqa: E402
 import granular_impact_probe as gip  # noqa: E402
 import granular_node_tracers as gnt  # noqa: E402
+import granular_restart_probe as grp  # noqa: E402
 import granular_truth_spread as gts  # noqa: E402
 import hybrid_families as hf  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
@@ -309,6 +310,23 @@ def test_tracers_follow_the_local_motion_not_a_far_mean():
     start = np.array([left.mean(0), right.mean(0)])
     tr = gnt.tracers(x, start, 0.005, 24)
     np.testing.assert_allclose(tr[-1], start + [-(T - 1) * v, (T - 1) * v], atol=1e-9)
+
+
+def test_restart_probe_gives_the_model_the_truths_history_up_to_the_restart_frame():
+    from diffgns.trajectory import Trajectory
+
+    T, N, C = 12, 3, 5
+    x = np.arange(T * N * 2, dtype=float).reshape(T, N, 2)
+    ref = Trajectory(positions=x, velocities=-x, particle_type=np.zeros(N, int),
+                     material=np.zeros(N), frame_dt=0.0025, bounds=((0.0, 1.0), (0.0, 1.0)))
+    assert grp.restarted(ref, C, C).positions.shape == x.shape  # the usual start
+    r = grp.restarted(ref, 8, C)
+    np.testing.assert_array_equal(r.positions[: C + 1], x[8 - C: 9])  # frames k-C .. k
+    np.testing.assert_array_equal(r.positions[-1], x[-1])  # the same last frame
+    np.testing.assert_array_equal(r.velocities, -x[8 - C:])
+    for k in (C - 1, T - 1):
+        with pytest.raises(ValueError, match=f"restart frame {k}"):
+            grp.restarted(ref, k, C)
 
 
 def test_impact_probe_scores_only_the_impact_frames_and_the_share_along_the_truth():
