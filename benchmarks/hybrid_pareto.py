@@ -35,8 +35,10 @@ the front with less than half the error of the GNS it runs (same model, same ref
 Schedules are named ``GNS`` (the GNS alone after the MPM warm-up), ``K<k>M<m>`` (k MPM frames
 after every m GNS frames), ``K<k>A<tol>`` (adaptive: a GNS segment of at most 20 frames ends
 when the energy-balance deviation exceeds tol J/kg), with ``:reset``/``:reconstruct`` (the
-hand-off of the deformation gradient; default carry) and ``:rigid`` (particles follow their
-node rigidly; default affine), e.g. ``K4M4:reset``, ``GNS:rigid``.
+hand-off of the deformation gradient; default carry), ``:rigid`` (particles follow their
+node rigidly; default affine) and ``:W<n>`` (n MPM warm-up frames instead of
+``Schedule()``'s), e.g. ``K4M4:reset``, ``GNS:rigid``, ``GNS:W100`` (the MPM for the first
+100 frames, then the GNS alone).
 """
 from __future__ import annotations
 
@@ -83,7 +85,7 @@ DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) /
 
 def parse_schedule(spec: str) -> Schedule:
     """A :class:`Schedule` from its name (see the module docstring): ``GNS``, ``K4M4``,
-    ``K2A0.02``, with ``:reset``, ``:reconstruct`` or ``:rigid``."""
+    ``K2A0.02``, with ``:reset``, ``:reconstruct``, ``:rigid`` or ``:W<n>``."""
     head, *opts = spec.split(":")
     kw: dict = {}
     for o in opts:
@@ -91,6 +93,8 @@ def parse_schedule(spec: str) -> Schedule:
             kw["handoff"] = o
         elif o in PARTICLE_MAPS:
             kw["particle_map"] = o
+        elif re.fullmatch(r"W\d+", o):
+            kw["warmup"] = int(o[1:])
         else:
             raise argparse.ArgumentTypeError(f"schedule {spec!r}: unknown option {o!r}")
     if head == "GNS":
@@ -114,6 +118,8 @@ def schedule_name(sched: Schedule) -> str:
         name = f"K{sched.mpm_frames}M{sched.gns_frames}"
     opts = [o for o, default in ((sched.handoff, "carry"), (sched.particle_map, "affine"))
             if o != default]
+    if sched.warmup != Schedule().warmup:
+        opts.append(f"W{sched.warmup}")
     return ":".join([name, *opts])
 
 

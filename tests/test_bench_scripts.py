@@ -44,9 +44,20 @@ def test_schedule_names_give_the_schedules_of_the_published_table():
 
 
 @pytest.mark.parametrize("name", ["GNS", "K2M5", "K4M4:reset", "K2A0.02", "K4M4:rigid",
-                                  "GNS:rigid", "K4M4:reconstruct:rigid"])
+                                  "GNS:rigid", "K4M4:reconstruct:rigid", "GNS:W100",
+                                  "K8M2:rigid:W40"])
 def test_a_schedule_name_reads_back_as_the_same_schedule(name):
     assert hp.schedule_name(hp.parse_schedule(name)) == name
+
+
+def test_a_warmup_option_sets_the_mpm_frames_before_the_first_gns_frame():
+    from diffgns.hybrid.simulator import Schedule
+
+    s = hp.parse_schedule("GNS:W100")
+    assert (s.warmup, s.mpm_frames) == (100, 0)
+    assert hp.parse_schedule("K8M2").warmup == Schedule().warmup  # no option: the default
+    with pytest.raises(argparse.ArgumentTypeError, match="unknown option 'W'"):
+        hp.parse_schedule("GNS:W")
 
 
 def test_hybrid_families_lists_exactly_the_cases_where_the_hybrid_is_worse():
