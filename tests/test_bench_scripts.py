@@ -41,6 +41,10 @@ def test_schedule_names_give_the_schedules_of_the_published_table():
     assert [hp.parse_schedule(x) for x in hp.FULL] == before
     assert hp.parse_schedule("K8M2").label == "hybrid K=8 M=2 (carry)"
     assert hp.parse_schedule("GNS:rigid").label == "GNS rigid"
+    # a warm-up other than the default is part of the name: tables key their rows by it
+    assert hp.parse_schedule("GNS:W100").label == "GNS after 100 MPM frames"
+    assert hp.parse_schedule("K8M2:W40").label == "hybrid K=8 M=2 (carry) after 40 MPM frames"
+    assert len({hp.parse_schedule(n).label for n in ("GNS", "GNS:W100", "GNS:W150")}) == 3
 
 
 @pytest.mark.parametrize("name", ["GNS", "K2M5", "K4M4:reset", "K2A0.02", "K4M4:rigid",

@@ -49,6 +49,8 @@ from diffgns.hybrid.handoff import (
 from diffgns.interface import rollout_safe
 
 GNS_MODE, MPM_MODE = 0, 1
+#: MPM frames before the first GNS frame, unless a :class:`Schedule` says otherwise
+DEFAULT_WARMUP = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +76,7 @@ class Schedule:
         min_gns_frames: shortest GNS segment when adaptive.
     """
 
-    warmup: int = 5
+    warmup: int = DEFAULT_WARMUP
     gns_frames: int = 2
     mpm_frames: int = 8
     handoff: str = "carry"
@@ -103,14 +105,18 @@ class Schedule:
 
     @property
     def label(self) -> str:
+        """A name for tables, unique per schedule: ``MPM``, ``GNS``, ``hybrid K=8 M=2
+        (carry)``, ..., with the warm-up when it is not :data:`DEFAULT_WARMUP` (``GNS after
+        100 MPM frames``)."""
         rigid = " rigid" if self.particle_map == "rigid" else ""
         if self.gns_frames == 0:
             return "MPM"
+        warm = "" if self.warmup == DEFAULT_WARMUP else f" after {self.warmup} MPM frames"
         if self.mpm_frames == 0:
-            return "GNS" + rigid
+            return "GNS" + rigid + warm
         tag = f"adaptive tol={self.adaptive_tol:g} M<={self.gns_frames}" \
             if self.adaptive_tol else f"M={self.gns_frames}"
-        return f"hybrid K={self.mpm_frames} {tag} ({self.handoff}{rigid})"
+        return f"hybrid K={self.mpm_frames} {tag} ({self.handoff}{rigid}){warm}"
 
 
 class HybridParams(NamedTuple):
