@@ -55,7 +55,7 @@ def main(argv=None) -> None:
     from granular_heldout import select_cases
 
     from diffgns.graph.data import load_trajectories
-    from diffgns.graph.evaluate import rollout_reference
+    from diffgns.graph.evaluate import rollout_reference, score
     from diffgns.graph.train_loop import load_model
     from diffgns.io.families_data import read_families
 
@@ -75,8 +75,9 @@ def main(argv=None) -> None:
             k_eff = max(k, C)
             if k_eff > len(x) - 2:
                 continue
-            traj, _ = rollout_reference(gns, params, restarted(ref, k_eff, C), timed=False)
-            err = float(np.sqrt(((np.asarray(traj.positions[-1]) - x[-1]) ** 2).sum(-1)).mean())
+            part = restarted(ref, k_eff, C)
+            traj, _ = rollout_reference(gns, params, part, timed=False)
+            err = score(traj, part, start=C)["final_mean_position_error_m"]
             row["error_m_from"][k] = err
             row["error_from"][k] = err / max(disp, 1e-12)
         rows.append(row)

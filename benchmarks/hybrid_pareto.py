@@ -116,9 +116,10 @@ def schedule_name(sched: Schedule) -> str:
         name = f"K{sched.mpm_frames}A{sched.adaptive_tol:g}"
     else:
         name = f"K{sched.mpm_frames}M{sched.gns_frames}"
-    opts = [o for o, default in ((sched.handoff, "carry"), (sched.particle_map, "affine"))
-            if o != default]
-    if sched.warmup != Schedule().warmup:
+    default = Schedule()
+    opts = [o for o, d in ((sched.handoff, default.handoff),
+                           (sched.particle_map, default.particle_map)) if o != d]
+    if sched.warmup != default.warmup:
         opts.append(f"W{sched.warmup}")
     return ":".join([name, *opts])
 
