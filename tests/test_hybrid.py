@@ -10,6 +10,8 @@ from diffgns import MPM
 from diffgns.graph.gns import GNSParams
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.handoff import (
+    BOUNDARY_SLIP_CELLS,
+    boundary_slip,
     LSQ_RIDGE,
     lsq_gradient,
     node_means,
@@ -268,10 +270,11 @@ def test_hybrid_affine_map_reaches_as_far_as_the_gns_graph(model, monkeypatch):
     import diffgns.hybrid.simulator as hybrid_module
 
     gns, params, _ = model
-    seen = []
+    seen, bands = [], []
 
     def spy(*args, **kwargs):
         seen.append(kwargs.get("reach"))
+        bands.append(kwargs.get("slip_band"))
         return particles_from_nodes(*args, **kwargs)
 
     monkeypatch.setattr(hybrid_module, "particles_from_nodes", spy)
@@ -279,7 +282,52 @@ def test_hybrid_affine_map_reaches_as_far_as_the_gns_graph(model, monkeypatch):
     hyb = Hybrid(sim, gns, 2, 4, Schedule(warmup=5, gns_frames=1, mpm_frames=1))
     res, _ = hyb.run(HybridParams(sim.params(), params), sim.init(), 7)
     assert seen and all(r == pytest.approx(gns.config.radius) for r in seen)
+    # and the boundary slip band: the MPM's B-spline reach
+    assert all(b == pytest.approx(BOUNDARY_SLIP_CELLS * sim.scene.dx) for b in bands)
     assert np.isfinite(np.asarray(res.positions)).all()
+
+
+def test_boundary_slip_removes_only_the_velocity_into_a_nearby_wall_or_face():
+    """Within the band of a box wall, or outside an obstacle near one of its faces (within
+    the face's span), a particle loses its velocity component into it; the tangential
+    component, velocities pointing away and particles farther away are unchanged."""
+    lo, hi = jnp.zeros(2), jnp.ones(2)
+    obstacles = jnp.array([[0.4, 0.0, 0.6, 0.2]])
+    cases = [  # position, velocity, expected velocity
+        ((0.2, 0.005), (0.3, -0.1), (0.3, 0.0)),    # on the floor, moving into it
+        ((0.2, 0.005), (0.3, 0.1), (0.3, 0.1)),     # on the floor, moving off it
+        ((0.2, 0.5), (0.3, -0.1), (0.3, -0.1)),     # far from every boundary
+        ((0.995, 0.5), (0.2, 0.1), (0.0, 0.1)),     # at the right wall
+        ((0.005, 0.995), (-0.2, 0.1), (0.0, 0.0)),  # in the top-left corner, into both
+        ((0.5, 0.205), (0.1, -0.3), (0.1, 0.0)),    # on the obstacle's top
+        ((0.395, 0.1), (0.2, 0.1), (0.0, 0.1)),     # at its left face
+        ((0.605, 0.1), (-0.2, 0.1), (0.0, 0.1)),    # at its right face
+        ((0.35, 0.205), (0.1, -0.3), (0.1, -0.3)),  # above its height, beside its span
+        ((0.5, 0.215), (0.1, -0.3), (0.1, -0.3)),   # above its top, outside the band
+    ]
+    x = jnp.array([c[0] for c in cases]).T
+    v = jnp.array([c[1] for c in cases]).T
+    want = np.array([c[2] for c in cases]).T
+    got = boundary_slip(x, v, lo, hi, 0.01, obstacles)
+    np.testing.assert_allclose(np.asarray(got), want, atol=0)
+    np.testing.assert_array_equal(np.asarray(boundary_slip(x, v, lo, hi, 0.0, obstacles)), v)
+    no_obstacles = boundary_slip(x, v, lo, hi, 0.01, jnp.zeros((0, 4)))
+    np.testing.assert_allclose(np.asarray(no_obstacles)[:, 5:8], np.asarray(v)[:, 5:8])
+    # the particle map applies it: a column handed over sinking and sliding keeps its
+    # sliding speed everywhere and its sinking speed only away from the floor
+    sim = MPM(small_scene())
+    st = sim.init()
+    cluster = jnp.zeros(st.n_particles, jnp.int32)
+    x_node = node_means(st.x, cluster, jnp.bincount(cluster))
+    vel, zero = jnp.array([[0.3, -0.1]]), jnp.zeros((1, 2, 2))
+    band = BOUNDARY_SLIP_CELLS * sim.scene.dx
+    new, _, _ = particles_from_nodes(st, cluster, x_node, 0 * vel, vel, zero, zero, "carry",
+                                     jnp.asarray(sim.lo), jnp.asarray(sim.hi), "rigid",
+                                     slip_band=band)
+    floor = np.asarray(st.x[1] - sim.lo[1]) < band
+    assert 0 < floor.sum() < st.n_particles
+    np.testing.assert_allclose(np.asarray(new.v[0]), 0.3, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(new.v[1]), np.where(floor, 0.0, -0.1), rtol=1e-6)
 
 
 def _quadrants(st):

@@ -68,6 +68,15 @@ PARTICLE_MAPS = ("affine", "rigid")
 # of the displacement against the GNS alone's 0.119 and 0.142; with this ridge 0.046 and
 # 0.031, and K=8 M=2 never worse than the GNS alone on the 72 held-out cases: hybrid guide).
 LSQ_RIDGE = 0.02
+# How far from a wall or obstacle face (in MPM cells) the map removes a particle's velocity
+# into it (:func:`boundary_slip`): the reach of the MPM's quadratic B-spline, so every
+# particle that transfers momentum to a boundary grid node. The node field's velocity is a
+# cluster mean, one node thick at a flow's front; extrapolated to the particles on the
+# floor it left them moving into it, and the MPM's Coulomb floor took mu times that normal
+# speed off their tangential speed in the first MPM frame: validation case 0 (a square mass
+# sliding out), K2M8:W150, the front's 10 nodes lost 9.4 mm/s against the MPM's own
+# deceleration at every hand-off, 1.1 mm/s with 1 cell, 0.1 mm/s with 1.5 (hybrid guide).
+BOUNDARY_SLIP_CELLS = 1.5
 
 
 def node_means(x: jax.Array, cluster: jax.Array, counts: jax.Array) -> jax.Array:
@@ -267,9 +276,41 @@ def within_reach(r: jax.Array, cluster: jax.Array, counts: jax.Array, reach: flo
     return short - mean[cluster].T
 
 
+def boundary_slip(x, v, lo, hi, band: float, obstacles=None):
+    """Particle velocities with the component into a nearby boundary removed (slip).
+
+    A particle within ``band`` of a box wall, or outside a box obstacle within ``band`` of
+    one of its faces (in the face's span), loses the component of its velocity into that
+    wall or face; the tangential component and every velocity pointing away are unchanged.
+    The MPM's own particles at a boundary carry no such component (its grid removes it
+    every substep); the node field's affine velocity, extrapolated from a cluster mean,
+    does, and a frictional boundary would take ``mu`` times it off the tangential speed.
+
+    Args:
+        x, v: (2, N) particle positions (m) and velocities (m/s).
+        lo, hi: (2,) box bounds, m. band: distance, m (0: no change).
+        obstacles: (K, 4) box obstacles ``[x0, y0, x1, y1]``, m (None or K = 0: none).
+    Returns:
+        (2, N) velocities, m/s.
+    """
+    if band <= 0:
+        return v
+    into = ((x - lo[:, None] < band) & (v < 0)) | ((hi[:, None] - x < band) & (v > 0))
+    if obstacles is not None and obstacles.shape[0]:
+        olo, ohi = obstacles[:, :2, None], obstacles[:, 2:, None]  # (K, 2, 1)
+        xb = x[None]  # (1, 2, N)
+        span = (xb >= olo) & (xb <= ohi)  # (K, 2, N): within the obstacle's extent per axis
+        other = span[:, ::-1]  # within the span of the faces normal to each axis
+        below = (olo - xb >= 0) & (olo - xb < band) & other & (v[None] > 0)
+        above = (xb - ohi >= 0) & (xb - ohi < band) & other & (v[None] < 0)
+        into = into | jnp.any(below | above, axis=0)
+    return jnp.where(into, jnp.zeros_like(v), v)
+
+
 def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,
                          lo, hi, particle_map: str = "affine", margin: float = 0.0,
-                         obstacles=None, reach: float | None = None):
+                         obstacles=None, reach: float | None = None,
+                         slip_band: float = 0.0):
     """MPM state after a GNS frame that moved node ``k`` from ``x_node[k]`` by ``disp[k]``.
 
     Args:
@@ -288,6 +329,9 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         reach: the affine map's reach, m: the offsets it applies the node gradients to are
             shortened to at most this (:func:`within_reach`; the hybrid passes the GNS
             radius). None: unlimited.
+        slip_band: particles this close to a wall or obstacle face lose their velocity
+            into it (:func:`boundary_slip`; the hybrid passes
+            :data:`BOUNDARY_SLIP_CELLS` MPM cells), m. 0: none.
 
     Returns:
         ``(state, ClampCount, kept)``: the new particle state, every particle inside the box
@@ -314,6 +358,7 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, counts,
                                                           reach))
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
+    v = boundary_slip(x, v, lo, hi, slip_band, obstacles)
     clamp = clamp.merge(stops)
     C = Gv
     kept = jnp.zeros((), jnp.int32)

@@ -39,6 +39,7 @@ from diffgns.graph.geometry import obstacle_array
 from diffgns.graph.gns import GNS
 from diffgns.graph.neighbors import did_overflow, edges
 from diffgns.hybrid.handoff import (
+    BOUNDARY_SLIP_CELLS,
     HANDOFFS,
     PARTICLE_MAPS,
     lsq_gradient,
@@ -250,6 +251,8 @@ class Hybrid:
         # the particle map keeps particles half a particle spacing from the walls (m)
         self.margin = 0.5 * min(mpm.scene.dx / np.sqrt(b.particles_per_cell)
                                 for b in mpm.scene.bodies)
+        # mapped particles this close to a wall or obstacle face move along it, not into it
+        self.slip_band = BOUNDARY_SLIP_CELLS * float(mpm.scene.dx)
 
     @property
     def n_nodes(self) -> int:
@@ -358,7 +361,8 @@ class Hybrid:
         mpm_state, map_clamp, f_kept = particles_from_nodes(
             s.mpm, self.cluster, x, disp, vel, grad_v, grad_u, sched.handoff, self.lo,
             self.hi, sched.particle_map, self.margin, self.obstacles,
-            reach=self.gns.config.radius)  # no further than the gradients' fit reaches
+            reach=self.gns.config.radius,  # no further than the gradients' fit reaches
+            slip_band=self.slip_band)
         if sched.handoff == "reconstruct":  # plastic return mapping of the new F
             mpm_state = mpm_state.replace(F=self.mpm.stress(params.mpm, mpm_state)[1])
         # Energy-balance indicator: deviation of the GNS's energy change per frame from the
