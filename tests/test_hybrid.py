@@ -11,8 +11,8 @@ from diffgns.graph.gns import GNSParams
 from diffgns.graph.train_loop import load_model
 from diffgns.hybrid.handoff import (
     BOUNDARY_SLIP_CELLS,
-    boundary_slip,
     LSQ_RIDGE,
+    boundary_slip,
     lsq_gradient,
     node_means,
     particles_from_nodes,
