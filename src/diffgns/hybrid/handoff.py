@@ -45,6 +45,12 @@ from the walls (11-15 of them on that case), unclamped but on the wall. A clamp 
 as a safety net for a node outside the box, and it is counted (:mod:`diffgns.clamp`).
 Box obstacles limit the affine term the same way, and a particle whose own path then enters
 one stops at its face, counted like a clamp (:func:`keep_inside`).
+
+**Particles at a boundary move along it** (:func:`boundary_slip`): within
+:data:`BOUNDARY_SLIP_CELLS` MPM cells of a wall or obstacle face, a mapped particle's
+velocity into it is removed, as the MPM's grid removes it from its own particles; the node
+field's extrapolated velocity otherwise drove a sliding front into the frictional floor at
+every hand-off to the MPM.
 """
 from __future__ import annotations
 
@@ -75,7 +81,7 @@ LSQ_RIDGE = 0.02
 # floor it left them moving into it, and the MPM's Coulomb floor took mu times that normal
 # speed off their tangential speed in the first MPM frame: validation case 0 (a square mass
 # sliding out), K2M8:W150, the front's 10 nodes lost 9.4 mm/s against the MPM's own
-# deceleration at every hand-off, 1.1 mm/s with 1 cell, 0.1 mm/s with 1.5 (hybrid guide).
+# deceleration in the first MPM frame, 3.8 mm/s with 1 cell, 0.1 mm/s with 1.5 (hybrid guide).
 BOUNDARY_SLIP_CELLS = 1.5
 
 
