@@ -58,6 +58,8 @@ import jax
 import jax.numpy as jnp
 
 from diffgns.clamp import ClampCount, clamp_positions
+from diffgns.graph.features import obstacle_distances
+from diffgns.mpm.boundaries import normal_condition
 
 HANDOFFS = ("reset", "carry", "reconstruct")
 # "reconstruct" trusts the node field's displacement gradient while it changes a cluster's
@@ -286,8 +288,11 @@ def boundary_slip(x, v, lo, hi, band: float, obstacles=None):
     """Particle velocities with the component into a nearby boundary removed (slip).
 
     A particle within ``band`` of a box wall, or outside a box obstacle within ``band`` of
-    one of its faces (in the face's span), loses the component of its velocity into that
-    wall or face; the tangential component and every velocity pointing away are unchanged.
+    it, loses the component of its velocity into that wall or obstacle: along the normal
+    from the obstacle's nearest surface point
+    (:func:`diffgns.graph.features.obstacle_distances`), by the MPM's slip condition
+    (:func:`diffgns.mpm.boundaries.normal_condition`). The tangential component and every
+    velocity pointing away are unchanged.
     The MPM's own particles at a boundary carry no such component (its grid removes it
     every substep); the node field's affine velocity, extrapolated from a cluster mean,
     does, and a frictional boundary would take ``mu`` times it off the tangential speed.
@@ -302,15 +307,17 @@ def boundary_slip(x, v, lo, hi, band: float, obstacles=None):
     if band <= 0:
         return v
     into = ((x - lo[:, None] < band) & (v < 0)) | ((hi[:, None] - x < band) & (v > 0))
-    if obstacles is not None and obstacles.shape[0]:
-        olo, ohi = obstacles[:, :2, None], obstacles[:, 2:, None]  # (K, 2, 1)
-        xb = x[None]  # (1, 2, N)
-        span = (xb >= olo) & (xb <= ohi)  # (K, 2, N): within the obstacle's extent per axis
-        other = span[:, ::-1]  # within the span of the faces normal to each axis
-        below = (olo - xb >= 0) & (olo - xb < band) & other & (v[None] > 0)
-        above = (xb - ohi >= 0) & (xb - ohi < band) & other & (v[None] < 0)
-        into = into | jnp.any(below | above, axis=0)
-    return jnp.where(into, jnp.zeros_like(v), v)
+    v = jnp.where(into, jnp.zeros_like(v), v)  # the box walls, axis by axis
+    if obstacles is None or obstacles.shape[0] == 0:
+        return v
+    # the nearest obstacle's distance and outward normal (the GNS's obstacle features, with
+    # the band as their radius), then the MPM's own slip condition along that normal
+    feat = obstacle_distances(x.T, obstacles, band)  # (N, 3): [d / band, (1 - d / band) n]
+    s, w = feat[:, 0], 1.0 - feat[:, 0]
+    near = (s >= 0) & (s < 1)
+    n = jnp.where(near, feat[:, 1:].T / jnp.where(near, w, 1.0), 0.0)  # (2, N)
+    slid = jnp.stack(normal_condition(tuple(v), tuple(n), "slip"))
+    return jnp.where(near, slid, v)
 
 
 def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, handoff: str,

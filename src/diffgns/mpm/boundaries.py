@@ -17,7 +17,7 @@ import numpy as np
 from diffgns.mpm import linalg as la
 
 
-def _normal_bc(v, n, kind: str, mu=None):
+def normal_condition(v, n, kind: str, mu=None):
     """Apply a boundary condition with outward normal ``n`` (d floats or (K,) arrays) to
     velocity components ``v`` (d arrays); returns the d new components."""
     if kind == "sticky":
@@ -36,7 +36,7 @@ def _named_condition(name: str, kind: str):
     """A jitted boundary condition named ``name``: it appears as ``name=...`` in the jaxpr, so
     tests can check which conditions a scene traces."""
     def condition(v, n, mu=None):
-        return _normal_bc(v, n, kind, mu)
+        return normal_condition(v, n, kind, mu)
 
     condition.__name__ = condition.__qualname__ = name
     return jax.jit(condition)
