@@ -82,7 +82,8 @@ def main(argv=None) -> None:
             rows.append(row)
             run.print(f"case {c:>2} {families[c]:<10} {row['schedule']:<6} position error "
                       f"{row[POS]:.3f}, runout {row['flow_runout_rel_error']:.3f}, MPM "
-                      f"{100 * row['mpm_fraction']:.0f}% of frames, clamped "
+                      f"{100 * row['mpm_fraction']:.0f}% of frames (warm-up "
+                      f"{row['warmup_frames']}), clamped "
                       f"{row['clamped_positions_mpm_frames']} in MPM frames (by up to "
                       f"{1e3 * row['max_clamp_shift_mpm_frames_m']:.3g} mm), "
                       f"{row['clamped_positions_gns_frames']} in GNS frames (by up to "
@@ -114,14 +115,15 @@ def run_case(scene, gns, params, info: dict, sched, ref) -> dict:
     if nodes.shape != np.shape(ref.positions):
         raise SystemExit(f"the hybrid's nodes {nodes.shape} do not match the dataset's "
                          f"{np.shape(ref.positions)}: another coarse-graining or frame count")
-    s = score(ref.replace(positions=nodes), ref, start=sched.warmup)
+    s = score(ref.replace(positions=nodes), ref, start=res.warmup_frames)
     x_ref = np.asarray(ref.positions)
     err = np.sqrt(((nodes - x_ref) ** 2).sum(-1)).mean(-1)
     every = np.arange(0, len(nodes), TRACE_EVERY)
     trace = dict(trace_frames=every.tolist(), node_error_m=err[every].tolist(),
                  centroid_m=nodes[every].mean(1).tolist(),
                  centroid_ref_m=x_ref[every].mean(1).tolist())
-    return dict(s, mpm_fraction=float(t["mpm_fraction"]), **res.clamp_summary(),
+    return dict(s, mpm_fraction=float(t["mpm_fraction"]), warmup_frames=res.warmup_frames,
+                **res.clamp_summary(),
                 **clamps_by_mode(res), **trace)
 
 

@@ -36,9 +36,10 @@ Schedules are named ``GNS`` (the GNS alone after the MPM warm-up), ``K<k>M<m>`` 
 after every m GNS frames), ``K<k>A<tol>`` (adaptive: a GNS segment of at most 20 frames ends
 when the energy-balance deviation exceeds tol J/kg), with ``:reset``/``:reconstruct`` (the
 hand-off of the deformation gradient; default carry), ``:rigid`` (particles follow their
-node rigidly; default affine) and ``:W<n>`` (n MPM warm-up frames instead of
-``Schedule()``'s), e.g. ``K4M4:reset``, ``GNS:rigid``, ``GNS:W100`` (the MPM for the first
-100 frames, then the GNS alone).
+node rigidly; default affine), ``:W<n>`` (n MPM warm-up frames instead of
+``Schedule()``'s) and ``:S<f>`` (the warm-up lasts until the kinetic energy is below f of
+its peak: ``Schedule.warmup_settle``), e.g. ``K4M4:reset``, ``GNS:rigid``, ``GNS:W100``
+(the MPM for the first 100 frames, then the GNS alone), ``K2M8:S0.1``.
 """
 from __future__ import annotations
 
@@ -95,6 +96,8 @@ def parse_schedule(spec: str) -> Schedule:
             kw["particle_map"] = o
         elif re.fullmatch(r"W\d+", o):
             kw["warmup"] = int(o[1:])
+        elif re.fullmatch(r"S0?\.\d+", o):
+            kw["warmup_settle"] = float(o[1:])
         else:
             raise argparse.ArgumentTypeError(f"schedule {spec!r}: unknown option {o!r}")
     if head == "GNS":
@@ -121,6 +124,8 @@ def schedule_name(sched: Schedule) -> str:
                            (sched.particle_map, default.particle_map)) if o != d]
     if sched.warmup != default.warmup:
         opts.append(f"W{sched.warmup}")
+    if sched.warmup_settle is not None:
+        opts.append(f"S{sched.warmup_settle:g}")
     return ":".join([name, *opts])
 
 

@@ -120,6 +120,8 @@ def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(ca
     given = build_parser().parse_args(["hybrid", "--gns-frames", "5", "--mpm-frames", "0",
                                        "--warmup", "6"])
     assert hybrid_schedule(given) == Schedule(warmup=6, gns_frames=5, mpm_frames=0)
+    settle = build_parser().parse_args(["hybrid", "--warmup-settle", "0.1"])
+    assert hybrid_schedule(settle) == Schedule(warmup_settle=0.1)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["hybrid", "--help"])
     text = " ".join(capsys.readouterr().out.split())

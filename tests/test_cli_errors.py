@@ -62,6 +62,10 @@ BAD = [  # (arguments after `diffgns`, the field named)
     (["simulate", "--column", "--aspect-ratio", "0"], "--aspect-ratio"),
     (["simulate", "--column", "--vtk-every", "0"], "--vtk-every"),
     (["train", "--data", "x.h5", "--steps", "0"], "--steps"),
+    (["hybrid", "--warmup", "0"], "--warmup"),
+    (["hybrid", "--warmup-settle", "1.5"], "--warmup-settle"),
+    (["hybrid", "--warmup-settle", "0"], "--warmup-settle"),
+    (["hybrid", "--adaptive-tol", "-1"], "--adaptive-tol"),
 ]
 
 

@@ -54,6 +54,9 @@ def test_schedule_rejects_invalid_input():
         Schedule(gns_frames=0, mpm_frames=0)
     with pytest.raises(ValueError, match="adaptive_tol > 0"):
         Schedule(adaptive_tol=-1.0)
+    for bad in (0.0, 1.0, -0.2, float("nan")):
+        with pytest.raises(ValueError, match="0 < warmup_settle < 1"):
+            Schedule(warmup_settle=bad)
 
 
 def test_warmup_shorter_than_history_rejected(model):
@@ -434,6 +437,36 @@ def test_fixed_schedule_and_gns_frames_match_the_gns(model):
     size = rollout_jit._cache_size()
     hyb.run(hp, st, 20, state=start)
     assert rollout_jit._cache_size() == size
+
+
+def test_settling_warmup_ends_when_the_kinetic_energy_falls_below_its_fraction(model):
+    """With ``warmup_settle=f`` the MPM runs until the nodes' kinetic energy per unit mass
+    is below f of its peak so far (computed here from an MPM-only run), then the fixed
+    alternation starts; the warm-up frames are the MPM's own."""
+    gns, params, _ = model
+    sim = MPM(small_scene())
+    p, st = sim.params(), sim.init()
+    hp, n = HybridParams(p, params), 56
+    mpm_only = Hybrid(sim, gns, 2, 4, Schedule(gns_frames=0, mpm_frames=1))
+    ref = np.asarray(mpm_only.run(hp, st, n)[0].nodes)
+    counts = np.asarray(mpm_only.counts)
+    v = np.diff(ref, axis=0) / mpm_only.frame_dt
+    ke = (counts * 0.5 * (v ** 2).sum(-1)).sum(-1) / counts.sum()  # (n,) after frame 1..n
+    settled = ke < 0.5 * np.maximum.accumulate(ke)
+    k = 1 + int(np.flatnonzero(settled)[0])  # frames in the warm-up
+    assert 5 < k < n - 8  # the column is still collapsing after the 5-frame minimum
+    sched = Schedule(warmup=5, warmup_settle=0.5, gns_frames=4, mpm_frames=2)
+    res, _ = Hybrid(sim, gns, 2, 4, sched).run(hp, st, n)
+    expected = [MPM_MODE] * k
+    while len(expected) < n:
+        expected += [GNS_MODE] * 4 + [MPM_MODE] * 2
+    np.testing.assert_array_equal(res.mode, expected[:n])
+    assert res.warmup_frames == k
+    np.testing.assert_allclose(np.asarray(res.nodes)[:k + 1], ref[:k + 1], atol=1e-6)
+    # the minimum still holds: a fraction met at once waits for ``warmup`` frames
+    late = Schedule(warmup=k + 3, warmup_settle=0.5, gns_frames=4, mpm_frames=2)
+    assert Hybrid(sim, gns, 2, 4, late).run(hp, st, n)[0].warmup_frames == k + 3
+    assert "kinetic energy < 0.5 of its peak" in sched.label
 
 
 def test_adaptive_switch_fires_on_the_indicator(model):

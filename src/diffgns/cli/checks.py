@@ -117,6 +117,15 @@ def probability(text: str) -> float:
     return value
 
 
+def fraction(text: str) -> float:
+    """argparse type: a number strictly between 0 and 1."""
+    value = finite(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not in (0, 1); give a fraction "
+                                         "strictly between 0 and 1")
+    return value
+
+
 def box_size(text: str) -> tuple[float, float]:
     """argparse type: a 2D box ``LENGTHxHEIGHT`` in m, e.g. ``1.4x0.35``."""
     parts = text.lower().split("x")

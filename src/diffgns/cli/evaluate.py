@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from diffgns.cli.checks import count, finite, is_mesh_model, model_folder
+from diffgns.cli.checks import count, finite, fraction, is_mesh_model, model_folder, positive
 
 
 def _rollout(args) -> int:
@@ -85,7 +85,8 @@ def hybrid_schedule(args):
 
     counts = {k: getattr(args, k) for k in ("warmup", "gns_frames", "mpm_frames")
               if getattr(args, k) is not None}
-    return Schedule(**counts, handoff=args.handoff, adaptive_tol=args.adaptive_tol,
+    return Schedule(**counts, warmup_settle=args.warmup_settle, handoff=args.handoff,
+                    adaptive_tol=args.adaptive_tol,
                     particle_map=args.particle_map)
 
 
@@ -109,7 +110,9 @@ def _hybrid(args) -> int:
         args.model = default_model(scene) if scene is not None else DEFAULT_MODEL
         print(f"model: {args.model} (the most accurate shipped model for this scene; "
               "--model to choose)", flush=True)
-    print(f"schedule: {sched.label}, {sched.warmup} MPM warm-up frames", flush=True)
+    warm = f"{sched.warmup} MPM warm-up frames" if sched.warmup_settle is None else \
+        f"MPM warm-up until the kinetic energy is < {sched.warmup_settle:g} of its peak"
+    print(f"schedule: {sched.label}, {warm}", flush=True)
     model = load_model(model_folder(args.model))
     if scene is not None:
         reference = scene.replace(dx=scene.dx / args.reference_refine)
@@ -173,8 +176,12 @@ def register(sub) -> None:
                    help="friction angle, degrees in (0, 90) (default 27.5)")
     h.add_argument("--frames", type=count, default=125, help="GNS frames, count (default 125)")
     # defaults None: Schedule()'s (the jax-free parser does not import the hybrid)
-    h.add_argument("--warmup", type=int, default=None,
+    h.add_argument("--warmup", type=count, default=None,
                    help="MPM frames before the first GNS frame, count >= 1 (default 5)")
+    h.add_argument("--warmup-settle", type=fraction, default=None, metavar="FRACTION",
+                   help="end the warm-up only once the flow's kinetic energy per unit mass "
+                   "has fallen below FRACTION (in (0, 1)) of its peak, and after --warmup "
+                   "frames (default: after --warmup frames)")
     h.add_argument("--gns-frames", type=count, default=None,
                    help="M: GNS frames per segment, count (default 2)")
     h.add_argument("--mpm-frames", type=int, default=None,
@@ -186,7 +193,7 @@ def register(sub) -> None:
                    "reconstruct it from the nodes (default carry)")
     h.add_argument("--particle-map", default="affine", choices=["affine", "rigid"],
                    help="how MPM particles follow their GNS node in GNS frames")
-    h.add_argument("--adaptive-tol", type=finite, default=None,
+    h.add_argument("--adaptive-tol", type=positive, default=None,
                    help="energy-balance tolerance (J/kg) for adaptive switching")
     h.add_argument("--cells-across", type=count, default=None,
                    help="MPM cells across the column in GNS/hybrid runs, count (default: the "

@@ -173,7 +173,8 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
     stride = int(info.get("frame_stride", 1))
     labels = labels or (f"MPM dx={reference.dx:g} m (reference)", f"MPM dx={scene.dx:g} m")
     wall = float(scene.domain[0][0])
-    gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0,
+    gns_only = Schedule(warmup=schedule.warmup, warmup_settle=schedule.warmup_settle,
+                        gns_frames=1, mpm_frames=0,
                         particle_map=schedule.particle_map)
     # refuse an unsupported scene before any run
     check_scene(scene, info, "exact" if cells_across is None else "node-spacing")

@@ -7,7 +7,9 @@
     result, _ = hyb.run(params, mpm.init(), n_frames=125)     # jitted, re-allocates on overflow
 
 Time runs in GNS frames (``frame_stride`` MPM frames each). The first ``warmup`` frames are
-MPM frames (they give the GNS its velocity history); then GNS segments of up to
+MPM frames (they give the GNS its velocity history; with ``Schedule.warmup_settle`` the
+warm-up lasts until the flow's kinetic energy has fallen to that fraction of its peak); then
+GNS segments of up to
 ``gns_frames`` frames alternate with MPM segments of ``mpm_frames`` frames. With
 ``adaptive_tol`` set, a GNS segment also ends as soon as an energy-balance indicator
 exceeds ``adaptive_tol`` J/kg: the sum over the segment's GNS frames of
@@ -65,7 +67,13 @@ class Schedule:
 
     Attributes:
         warmup: MPM frames at the start (>= 1; the GNS needs ``history`` frames of motion to
-            be accurate, so ``warmup >= history`` is the sensible choice).
+            be accurate, so ``warmup >= history`` is the sensible choice). With
+            ``warmup_settle`` the shortest warm-up.
+        warmup_settle: None, or a fraction in (0, 1): the warm-up then lasts until the
+            nodes' kinetic energy per unit mass has fallen below this fraction of its peak
+            so far (and at least ``warmup`` frames): the MPM runs the flow's fast phase,
+            however long it lasts, and the GNS takes over once the flow is settling. A flow
+            that never settles stays in the MPM.
         gns_frames: M, GNS frames per segment (the maximum when adaptive). 0: MPM only.
         mpm_frames: K, MPM frames per refinement segment. 0: GNS only after the warm-up.
         handoff: GNS -> MPM deformation state: "reset" (F = I), "carry" (last MPM F) or
@@ -78,6 +86,7 @@ class Schedule:
     """
 
     warmup: int = DEFAULT_WARMUP
+    warmup_settle: float | None = None
     gns_frames: int = 2
     mpm_frames: int = 8
     handoff: str = "carry"
@@ -89,6 +98,8 @@ class Schedule:
         bad = []
         if self.warmup < 1:
             bad.append("warmup >= 1")
+        if self.warmup_settle is not None and not 0 < self.warmup_settle < 1:
+            bad.append("0 < warmup_settle < 1")
         if self.gns_frames < 0 or self.mpm_frames < 0:
             bad.append("gns_frames, mpm_frames >= 0")
         if self.gns_frames == 0 and self.mpm_frames == 0:
@@ -113,6 +124,9 @@ class Schedule:
         if self.gns_frames == 0:
             return "MPM"
         warm = "" if self.warmup == DEFAULT_WARMUP else f" after {self.warmup} MPM frames"
+        if self.warmup_settle is not None:
+            warm = (f" after MPM frames to kinetic energy < {self.warmup_settle:g} of its peak"
+                    f" (>= {self.warmup} frames)")
         if self.mpm_frames == 0:
             return "GNS" + rigid + warm
         tag = f"adaptive tol={self.adaptive_tol:g} M<={self.gns_frames}" \
@@ -140,6 +154,8 @@ class HybridState(NamedTuple):
         count: int32, frames run in the current segment.
         used_mpm: bool, the last frame was an MPM frame.
         t: int32, frames advanced since :meth:`Hybrid.init`.
+        warming: bool, the next frame is a warm-up frame (the warm-up has not ended).
+        peak_ke: the largest kinetic energy per unit mass of the nodes so far, J/kg.
         clamp: :class:`~diffgns.clamp.ClampCount` of the last frame: positions moved into the
             domain by the MPM's substeps, the GNS's node prediction or the particle map.
         f_kept: int32, particles of the last frame whose F the "reconstruct" hand-off kept
@@ -155,6 +171,8 @@ class HybridState(NamedTuple):
     count: jax.Array
     used_mpm: jax.Array
     t: jax.Array
+    warming: jax.Array
+    peak_ke: jax.Array
     clamp: ClampCount
     f_kept: jax.Array
 
@@ -202,6 +220,12 @@ class HybridResult:
     @property
     def mpm_fraction(self) -> float:
         return float(np.mean(np.asarray(self.mode) == MPM_MODE))
+
+    @property
+    def warmup_frames(self) -> int:
+        """Frames before the first GNS frame (all of them if the GNS never ran)."""
+        gns = np.flatnonzero(np.asarray(self.mode) != MPM_MODE)
+        return int(gns[0]) if len(gns) else int(np.shape(self.mode)[0])
 
     def clamp_summary(self) -> dict:
         """:func:`diffgns.clamp.clamp_summary` of the run's clamps, and ``f_kept_particles``:
@@ -279,24 +303,28 @@ class Hybrid:
         i0 = jnp.asarray(0, jnp.int32)
         return HybridState(mpm_state, hist, self.gns.allocate(x, extra_capacity), zero, zero,
                            jnp.asarray(MPM_MODE, jnp.int32), i0, jnp.asarray(True), i0,
-                           ClampCount.zero(mpm_state.x.dtype), i0)
+                           jnp.asarray(True), zero, ClampCount.zero(mpm_state.x.dtype), i0)
 
     def step(self, params: HybridParams, state: HybridState) -> HybridState:
         """One GNS frame or ``frame_stride`` MPM frames, as the schedule says (pure)."""
         sched = self.schedule
         t = state.t
-        use_mpm = (t < sched.warmup) | (state.mode == MPM_MODE)
+        use_mpm = state.warming | (state.mode == MPM_MODE)
         material = self.node_material(params.mpm)
         state = jax.lax.cond(use_mpm, lambda s: self._mpm_frame(params.mpm, s),
                              lambda s: self._gns_frame(params, material, s), state)
+        ke = self._kinetic_energy(state.history)
+        peak = jnp.maximum(state.peak_ke, ke)
+        warm = state.warming & (t + 1 < sched.warmup)
+        if sched.warmup_settle is not None:  # and until the flow settles
+            warm |= state.warming & ~(ke < sched.warmup_settle * peak)
         count = state.count + 1
-        warm = t + 1 < sched.warmup
         if sched.gns_frames == 0:
             next_mode = jnp.asarray(MPM_MODE)
         elif sched.mpm_frames == 0:
             next_mode = jnp.where(warm, MPM_MODE, GNS_MODE)
         else:
-            mpm_done = ~warm & ((t + 1 == sched.warmup) | (count >= sched.mpm_frames))
+            mpm_done = ~warm & (state.warming | (count >= sched.mpm_frames))
             gns_done = count >= sched.gns_frames
             if sched.adaptive_tol is not None:
                 gns_done |= (count >= sched.min_gns_frames) & (
@@ -306,7 +334,8 @@ class Hybrid:
         next_mode = next_mode.astype(jnp.int32)
         switched = next_mode != jnp.where(use_mpm, MPM_MODE, GNS_MODE)
         count = jnp.where(switched, 0, count).astype(jnp.int32)
-        return state._replace(mode=next_mode, count=count, used_mpm=use_mpm, t=t + 1)
+        return state._replace(mode=next_mode, count=count, used_mpm=use_mpm, t=t + 1,
+                              warming=warm, peak_ke=peak)
 
     def observe(self, state: HybridState) -> HybridFrame:
         """Particles, nodes, mode of the last frame, indicator and overflow flag."""
@@ -323,6 +352,13 @@ class Hybrid:
                                                             first_bad, attempt))
 
     # ---------------------------------------------------------------- frames
+    def _kinetic_energy(self, hist):
+        """Kinetic energy per unit mass (J/kg) of the nodes' last frame (no gradient: it
+        only decides the schedule)."""
+        zero = jnp.zeros(hist.shape[-1], hist.dtype)
+        return jax.lax.stop_gradient(
+            specific_energy(hist[:, -2], hist[:, -1], self.counts, zero, self.frame_dt))
+
     def _energy_change(self, params, hist, x_next):
         """Change of mechanical energy per unit mass (J/kg) over the frame to ``x_next``."""
         g = params.gravity.astype(hist.dtype)
