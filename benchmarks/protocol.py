@@ -257,7 +257,10 @@ class Run:
 
     def write(self, name: str | os.PathLike, payload: Mapping[str, Any]) -> Path:
         """Write :meth:`document` to ``benchmarks/results/<name>``, or to ``name`` when it
-        has a folder, or to the parent's ``--result-to`` in a pinned child run."""
+        has a folder, or to the parent's ``--result-to`` in a pinned child run; ``.json`` is
+        appended to a name without it (``--out front`` writes ``front.json``)."""
+        if not str(name).endswith(".json"):
+            name = f"{name}.json"
         path = Path(self.result_to) if self.result_to else results_path(name)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(self.document(payload), indent=2, default=_json_default)

@@ -146,6 +146,14 @@ def test_combined_report_is_invalid_if_its_pinned_part_is():
     assert run.document({"one_thread_pinned": {"valid": False}})["valid"] is False
 
 
+def test_a_record_name_without_json_gets_the_suffix(tmp_path):
+    run = start(load=QUIET)
+    assert run.write(tmp_path / "front", {}) == tmp_path / "front.json"
+    assert run.write(tmp_path / "a.b", {}) == tmp_path / "a.b.json"
+    assert run.write(tmp_path / "c.json", {}) == tmp_path / "c.json"
+    assert json.loads((tmp_path / "front.json").read_text())["benchmark"] == "bench"
+
+
 def test_results_path_names_a_file_in_results_or_a_given_path(tmp_path):
     assert protocol.results_path("x.json") == protocol.RESULTS_DIR / "x.json"
     assert protocol.results_path(tmp_path / "x.json") == tmp_path / "x.json"
