@@ -4,11 +4,19 @@ GNS nodes are cluster means of MPM particles (:func:`diffgns.graph.data.coarse_g
 
 * MPM -> GNS: node position = mean position of its particles (what the GNS was trained on).
 * GNS -> MPM: every particle follows the affine field of its node: with ``r`` its offset
-  from the node before the frame, it moves by ``u_k + (grad u)_k r`` and takes the velocity
-  ``v_k + (grad v)_k r'`` (``r'`` the offset after the move), so a cluster stretches and
-  shears as the node field does and its mean stays the node ("affine", the default);
-  "rigid" moves every particle by its node's displacement and velocity (clusters keep their
-  shape; what published research code did). The APIC matrix
+  from the node before the frame, it moves by ``u_k + (grad u)_k r``, so a cluster
+  stretches and shears as the node field does and its mean stays the node ("affine", the
+  default). Its velocity is its node's plus the deviation from its node's mean velocity
+  that it had before the frame, ``v_k + (v_p - mean_k v)``: the sub-node velocity structure
+  of the last MPM frame (a stretching front's leading particles faster than its trailing
+  ones) is carried through the GNS segment, and each cluster's mean velocity is the node's.
+  The GNS knows nothing below the node scale, and the node field's least-squares gradient,
+  a fit over neighbours 2.5 node spacings around, flattened it: at a thin front whose
+  particles spread from 0.70 to 1.13 m/s the extrapolated velocities spread from 0.88 to
+  0.96 m/s, and each hand-off back to the MPM slowed the front (hybrid guide, "The
+  particles' own velocity structure"). "rigid" moves every particle by its node's
+  displacement and gives it the node's velocity (clusters keep their shape; what published
+  research code did). The APIC matrix
   C of a particle is the velocity gradient of the node field at its node, and the deformation
   gradient F is either reset to I (stress-free, what published research code did), carried
   unchanged from the last MPM frame, or updated with the isochoric part of the displacement
@@ -267,9 +275,10 @@ def within_reach(r: jax.Array, cluster: jax.Array, counts: jax.Array, reach: flo
     the start, and a flow shears them apart: a particle can end up far beyond the reach of
     its node's fit (test2 case 20, two thrown masses: 26% of the particles more than one
     radius from their node at the last frame, up to 0.44 m), where the linear field is an
-    extrapolation. There ``(grad u) r`` and ``(grad v) r`` grow with ``|r|``, and through
-    GNS frame after GNS frame they launched strings of particles across the box
-    (hybrid guide, "Particles beyond their node's reach").
+    extrapolation. There ``(grad u) r`` grows with ``|r|`` (as did ``(grad v) r`` when the
+    map extrapolated velocities too), and through GNS frame after GNS frame they launched
+    strings of particles across the box (hybrid guide, "Particles beyond their node's
+    reach").
     ``reach = None``: no limit (the offsets unchanged).
     """
     if reach is None:
@@ -331,17 +340,17 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         cluster: (N,) node index of every particle.
         x_node: (M, 2) node positions before the frame (the cluster means of ``state.x``), m.
         disp: (M, 2) node displacement over the frame, m. vel: (M, 2) node velocity, m/s.
-        grad_v: (M, 2, 2) node velocity gradient, 1/s. grad_u: (M, 2, 2) displacement
-            gradient over the frame.
+        grad_v: (M, 2, 2) node velocity gradient, 1/s: every particle's APIC matrix C.
+            grad_u: (M, 2, 2) displacement gradient over the frame.
         handoff: one of :data:`HANDOFFS`. lo, hi: (2,) domain bounds, m.
         particle_map: one of :data:`PARTICLE_MAPS`.
         margin: how far from the walls (m) the map keeps particles that were not closer
             already (:func:`keep_inside`; the hybrid uses half the MPM particle spacing).
         obstacles: (K, 4) box obstacles ``[x0, y0, x1, y1]`` the map keeps particles out
             of, m (None: none).
-        reach: the affine map's reach, m: the offsets it applies the node gradients to are
-            shortened to at most this (:func:`within_reach`; the hybrid passes the GNS
-            radius). None: unlimited.
+        reach: the affine map's reach, m: the offsets it applies the displacement
+            gradient to are shortened to at most this (:func:`within_reach`; the hybrid
+            passes the GNS radius). None: unlimited.
         slip_band: particles this close to a wall or obstacle face lose their velocity
             into it (:func:`boundary_slip`; the hybrid passes
             :data:`BOUNDARY_SLIP_CELLS` MPM cells), m. 0: none.
@@ -367,9 +376,8 @@ def particles_from_nodes(state, cluster, x_node, disp, vel, grad_v, grad_u, hand
         if particle_map == "affine" else jnp.zeros_like(r)
     x, stops = keep_inside(node_new, r, step, cluster, m, lo, hi, state.x, margin, obstacles)
     v = vel[cluster].T
-    if particle_map == "affine":
-        v = v + jnp.einsum("abn,bn->an", Gv, within_reach(x - node_new, cluster, counts,
-                                                          reach))
+    if particle_map == "affine":  # each particle keeps its deviation from its node's mean
+        v = v + state.v - node_means(state.v, cluster, counts)[cluster].T
     x, clamp = clamp_positions(x, lo[:, None], hi[:, None], axis=0)
     v = boundary_slip(x, v, lo, hi, slip_band, obstacles)
     clamp = clamp.merge(stops)
