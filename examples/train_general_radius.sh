@@ -2,9 +2,9 @@
 # The general GNS's stages s0 and s1 (r1's recipe of examples/train_general_gns.sh) with
 # another connectivity radius, to measure what the radius does alone (docs/guides/gns.md,
 # "The connectivity radius"): R=0.022 -> runs/general_r22 (stage s0 committed under
-# checkpoints/general_r22/s0), R=0.040 -> runs/general_r40 (stage s0 interrupted at step
-# 22,216 on 2026-12-07, its checkpoint committed under checkpoints/general_r40/s0: this
-# script resumes it). Seeds: 121/122 for 0.022, 51/61 (r1's and r1b's) for 0.040.
+# checkpoints/general_r22/s0), R=0.040 -> runs/general_r40 (stage s0 finished on
+# 2026-12-07 after a resume at step 22,216, committed under checkpoints/general_r40/s0: this
+# script goes on with s1). Seeds: 121/122 for 0.022, 51/61 (r1's and r1b's) for 0.040.
 # Run niced in the background:  RADIUS=0.040 nohup examples/train_general_radius.sh &> runs/r40.log &
 set -euo pipefail
 RADIUS=${RADIUS:-0.040}
