@@ -26,13 +26,15 @@ from diffgns.hybrid.compare import (
     run_mpm,
     score_against,
 )
-from diffgns.hybrid.simulator import Schedule
+from diffgns.hybrid.simulator import DEFAULT_SCHEDULE, Schedule
 from diffgns.models import model_path
 
 N_FRAMES = 125  # GNS frames of 5 ms (0.625 s, the flows are at rest), as `diffgns hybrid`
-#: the hybrid schedules checked: ``diffgns hybrid``'s defaults (K = 8 MPM frames after every
-#: M = 2 GNS frames, since 2026-12-07) and its defaults before (K = 2, M = 5), more GNS frames
-HYBRIDS = {"hybrid": Schedule(), "hybrid_k2m5": Schedule(warmup=5, gns_frames=5, mpm_frames=2)}
+#: the hybrid schedules checked: ``diffgns hybrid``'s default (the MPM until the flow settles,
+#: then K = 2 MPM frames after every M = 8 GNS frames, since 2026-12-07) and its defaults
+#: before: K = 8 after M = 2 (``Schedule()``) and, before that, K = 2 after M = 5
+HYBRIDS = {"hybrid": DEFAULT_SCHEDULE, "hybrid_k8m2": Schedule(),
+           "hybrid_k2m5": Schedule(warmup=5, gns_frames=5, mpm_frames=2)}
 GNS_ALONE = Schedule(warmup=5, gns_frames=1, mpm_frames=0)
 
 
