@@ -90,8 +90,8 @@ def test_dataset_squares(tmp_path):
 def test_hybrid_command_writes_comparison(tmp_path):
     out = tmp_path / "hyb"
     rc = main(["hybrid", "--model", "gns_columns", "--aspect-ratio", "0.75", "--frames", "20",
-               "--gns-frames", "4", "--mpm-frames", "2", "--reference-cells", "12", "--out",
-               str(out)])
+               "--gns-frames", "4", "--mpm-frames", "2", "--warmup-settle", "none",
+               "--reference-cells", "12", "--out", str(out)])
     assert rc == 0
     rows = json.loads((out / "hybrid_comparison.json").read_text())
     labels = [r["label"] for r in rows]
@@ -105,29 +105,30 @@ def test_hybrid_command_writes_comparison(tmp_path):
 
 
 def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(capsys):
-    """``diffgns hybrid`` without schedule options runs ``Schedule()`` (the schedule never
-    worse than the GNS alone on the held-out family sets), its help states those counts,
+    """``diffgns hybrid`` without schedule options runs ``DEFAULT_SCHEDULE`` (never worse
+    than the GNS alone on the held-out family sets), its help states its counts,
     and without ``--model`` it takes the most accurate shipped model (as ``invert``)."""
     import re
 
     from diffgns.cli import build_parser
     from diffgns.cli.evaluate import hybrid_schedule
-    from diffgns.hybrid.simulator import Schedule
+    from diffgns.hybrid.simulator import DEFAULT_SCHEDULE, Schedule
 
     args = build_parser().parse_args(["hybrid"])
     assert args.model is None
-    assert hybrid_schedule(args) == Schedule()
+    assert hybrid_schedule(args) == DEFAULT_SCHEDULE
     given = build_parser().parse_args(["hybrid", "--gns-frames", "5", "--mpm-frames", "0",
                                        "--warmup", "6"])
-    assert hybrid_schedule(given) == Schedule(warmup=6, gns_frames=5, mpm_frames=0)
-    settle = build_parser().parse_args(["hybrid", "--warmup-settle", "0.1"])
-    assert hybrid_schedule(settle) == Schedule(warmup_settle=0.1)
+    assert hybrid_schedule(given) == Schedule(warmup=6, warmup_settle=0.1, gns_frames=5,
+                                              mpm_frames=0)
+    fixed = build_parser().parse_args(["hybrid", "--warmup-settle", "none", "--warmup", "150"])
+    assert hybrid_schedule(fixed) == Schedule(warmup=150, gns_frames=8, mpm_frames=2)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["hybrid", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    d = Schedule()
+    d = DEFAULT_SCHEDULE
     for flag, value in (("--warmup", d.warmup), ("--gns-frames", d.gns_frames),
-                        ("--mpm-frames", d.mpm_frames)):
+                        ("--mpm-frames", d.mpm_frames), ("--warmup-settle", d.warmup_settle)):
         assert re.search(rf"{flag} \S+ (?:(?! --).)*?\(default {value}\b", text), flag
 
 

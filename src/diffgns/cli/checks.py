@@ -126,6 +126,11 @@ def fraction(text: str) -> float:
     return value
 
 
+def fraction_or_none(text: str) -> float | str:
+    """argparse type: :func:`fraction`, or ``"none"`` (an option switched off)."""
+    return "none" if text.strip().lower() == "none" else fraction(text)
+
+
 def box_size(text: str) -> tuple[float, float]:
     """argparse type: a 2D box ``LENGTHxHEIGHT`` in m, e.g. ``1.4x0.35``."""
     parts = text.lower().split("x")

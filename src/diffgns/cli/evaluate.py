@@ -5,7 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from diffgns.cli.checks import count, finite, fraction, is_mesh_model, model_folder, positive
+from diffgns.cli.checks import (
+    count,
+    finite,
+    fraction_or_none,
+    is_mesh_model,
+    model_folder,
+    positive,
+)
 
 
 def _rollout(args) -> int:
@@ -80,14 +87,18 @@ def _rollout_mesh(args) -> int:
 
 def hybrid_schedule(args):
     """The :class:`~diffgns.hybrid.simulator.Schedule` of ``diffgns hybrid``'s arguments;
-    the counts not given are ``Schedule()``'s defaults."""
-    from diffgns.hybrid.simulator import Schedule
+    what is not given is :data:`~diffgns.hybrid.simulator.DEFAULT_SCHEDULE`'s
+    (``--warmup-settle none``: a warm-up of ``--warmup`` frames only)."""
+    import dataclasses
 
-    counts = {k: getattr(args, k) for k in ("warmup", "gns_frames", "mpm_frames")
-              if getattr(args, k) is not None}
-    return Schedule(**counts, warmup_settle=args.warmup_settle, handoff=args.handoff,
-                    adaptive_tol=args.adaptive_tol,
-                    particle_map=args.particle_map)
+    from diffgns.hybrid.simulator import DEFAULT_SCHEDULE
+
+    given = {k: getattr(args, k) for k in ("warmup", "gns_frames", "mpm_frames", "warmup_settle")
+             if getattr(args, k) is not None}
+    if given.get("warmup_settle") == "none":
+        given["warmup_settle"] = None
+    return dataclasses.replace(DEFAULT_SCHEDULE, **given, handoff=args.handoff,
+                               adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
 
 
 def _hybrid(args) -> int:
@@ -110,9 +121,7 @@ def _hybrid(args) -> int:
         args.model = default_model(scene) if scene is not None else DEFAULT_MODEL
         print(f"model: {args.model} (the most accurate shipped model for this scene; "
               "--model to choose)", flush=True)
-    warm = f"{sched.warmup} MPM warm-up frames" if sched.warmup_settle is None else \
-        f"MPM warm-up until the kinetic energy is < {sched.warmup_settle:g} of its peak"
-    print(f"schedule: {sched.label}, {warm}", flush=True)
+    print(f"schedule: {sched.label}", flush=True)
     model = load_model(model_folder(args.model))
     if scene is not None:
         reference = scene.replace(dx=scene.dx / args.reference_refine)
@@ -127,6 +136,9 @@ def _hybrid(args) -> int:
               f"{1e3 * r['mean_position_error_m']:10.2f} {r['seconds']:8.3f} "
               f"{r['clamped_positions']:8d}")
     for r in out["rows"]:
+        if "warmup_frames" in r and r["label"] == sched.label:
+            print(f"{r['label']}: {r['warmup_frames']} MPM warm-up frames, MPM in "
+                  f"{100 * r['mpm_fraction']:.0f}% of the {args.frames} frames")
         warn = clamp_warning(r, r["label"])
         if warn:
             print(warn)
@@ -175,19 +187,20 @@ def register(sub) -> None:
     h.add_argument("--friction-angle", type=finite, default=27.5,
                    help="friction angle, degrees in (0, 90) (default 27.5)")
     h.add_argument("--frames", type=count, default=125, help="GNS frames, count (default 125)")
-    # defaults None: Schedule()'s (the jax-free parser does not import the hybrid)
+    # defaults None: DEFAULT_SCHEDULE's (the jax-free parser does not import the hybrid)
     h.add_argument("--warmup", type=count, default=None,
-                   help="MPM frames before the first GNS frame, count >= 1 (default 5)")
-    h.add_argument("--warmup-settle", type=fraction, default=None, metavar="FRACTION",
-                   help="end the warm-up only once the flow's kinetic energy per unit mass "
-                   "has fallen below FRACTION (in (0, 1)) of its peak, and after --warmup "
-                   "frames (default: after --warmup frames)")
+                   help="MPM frames before the first GNS frame, count >= 1; with "
+                   "a settling warm-up the least (default 5)")
+    h.add_argument("--warmup-settle", type=fraction_or_none, default=None,
+                   metavar="FRACTION",
+                   help="the warm-up lasts until the flow's kinetic energy per unit mass has "
+                   "fallen below FRACTION (in (0, 1)) of its peak; 'none': a fixed frame count "
+                   "(default 0.1: the MPM runs the fast phase of the flow, however long "
+                   "it lasts; hybrid guide)")
     h.add_argument("--gns-frames", type=count, default=None,
-                   help="M: GNS frames per segment, count (default 2)")
+                   help="M: GNS frames per segment, count (default 8)")
     h.add_argument("--mpm-frames", type=int, default=None,
-                   help="K: MPM frames per segment, count >= 0 (default 8: with fewer, the "
-                   "hybrid was worse than the GNS alone on some held-out scenes; hybrid "
-                   "guide)")
+                   help="K: MPM frames per segment, count >= 0 (default 2)")
     h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"],
                    help="state handed from GNS to MPM: carry the MPM state, reset it, or "
                    "reconstruct it from the nodes (default carry)")

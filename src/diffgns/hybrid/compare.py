@@ -155,7 +155,8 @@ def run_hybrid(scene, gns, network, info: dict, schedule: Schedule, n_frames: in
     first, (_, state) = measure(lambda: hyb.run(params, s, n_frames))  # allocates a list
     t, res = time_call(lambda: hyb.run(params, s, n_frames, state=state)[0], repeats,
                        first=first)
-    return res, dict(_timing(t), mpm_fraction=res.mpm_fraction, **res.clamp_summary())
+    return res, dict(_timing(t), mpm_fraction=res.mpm_fraction,
+                     warmup_frames=res.warmup_frames, **res.clamp_summary())
 
 
 def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
@@ -173,8 +174,7 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
     stride = int(info.get("frame_stride", 1))
     labels = labels or (f"MPM dx={reference.dx:g} m (reference)", f"MPM dx={scene.dx:g} m")
     wall = float(scene.domain[0][0])
-    gns_only = Schedule(warmup=schedule.warmup, warmup_settle=schedule.warmup_settle,
-                        gns_frames=1, mpm_frames=0,
+    gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0,
                         particle_map=schedule.particle_map)
     # refuse an unsupported scene before any run
     check_scene(scene, info, "exact" if cells_across is None else "node-spacing")
