@@ -8,9 +8,10 @@ no tuning: the particle map's limit has no tuned parameter, its margin is half t
 particle spacing). On each: the particle map clamps no position, in the GNS frames of the
 GNS-alone run or of any hybrid (an MPM frame's clamps are the MPM's own, particles resting on
 a wall moved back by micrometres; they are counted apart), and each hybrid's mean
-material-point position error against the MPM is at most the GNS's alone. (Until 2026-12-04 it was not, on two of the three: the hand-off gave the MPM the
-GNS frame's mean velocity, half a frame late; measured 2026-12-04 23:55 UTC with the end-of-frame
-velocity, hybrid / GNS: 2.79 / 4.46, 3.21 / 4.53, 3.27 / 5.41 mm.)
+material-point position error against the MPM is at most the GNS's alone. (Until 2026-12-04
+it was not, on two of the three: the hand-off gave the MPM the GNS frame's mean velocity, half
+a frame late; measured 2026-12-04 23:55 UTC with the end-of-frame velocity, hybrid / GNS:
+2.79 / 4.46, 3.21 / 4.53, 3.27 / 5.41 mm.)
 """
 from __future__ import annotations
 
