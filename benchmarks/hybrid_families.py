@@ -122,25 +122,8 @@ def run_case(scene, gns, params, info: dict, sched, ref) -> dict:
     trace = dict(trace_frames=every.tolist(), node_error_m=err[every].tolist(),
                  centroid_m=nodes[every].mean(1).tolist(),
                  centroid_ref_m=x_ref[every].mean(1).tolist())
-    return dict(s, mpm_fraction=float(t["mpm_fraction"]), warmup_frames=res.warmup_frames,
-                **res.clamp_summary(),
-                **clamps_by_mode(res), **trace)
-
-
-def clamps_by_mode(res) -> dict:
-    """Clamped positions and the largest clamp shift (m) of a :class:`HybridResult`, split
-    by the simulator that made each frame (``res.mode``: the MPM, or the GNS with its
-    particle map): an MPM frame's clamps of a few micrometres are particles resting on a
-    wall, a GNS frame's of millimetres are nodes the network sent through one."""
-    from diffgns.hybrid.simulator import MPM_MODE
-
-    count, shift = np.asarray(res.clamped)[1:], np.asarray(res.clamp_shift)[1:]
-    out = {}
-    for name, sel in (("mpm", np.asarray(res.mode) == MPM_MODE),
-                      ("gns", np.asarray(res.mode) != MPM_MODE)):
-        out[f"clamped_positions_{name}_frames"] = int(count[sel].sum())
-        out[f"max_clamp_shift_{name}_frames_m"] = float(shift[sel].max(initial=0.0))
-    return out
+    return dict(s, mpm_fraction=float(t["mpm_fraction"]), warmup_frames=t["warmup_frames"],
+                **res.clamp_summary(), **trace)
 
 
 def worse_than_gns(rows: list[dict], name: str, tol: float = 0.0) -> list[dict]:

@@ -86,17 +86,22 @@ def test_hybrid_families_lists_exactly_the_cases_where_the_hybrid_is_worse():
     assert any(line.startswith("K2M5") and line.rstrip().endswith("0/3") for line in printed)
 
 
-def test_hybrid_families_splits_clamps_by_the_simulator_that_made_the_frame():
-    from types import SimpleNamespace
-
+def test_hybrid_result_splits_clamps_by_the_simulator_that_made_the_frame():
     import numpy as np
 
+    from diffgns.hybrid.simulator import HybridResult
+
     # frames 0..4; frame t is made by step t - 1 of mode[t - 1] (0 GNS, 1 MPM)
-    res = SimpleNamespace(mode=np.array([1, 0, 0, 1]), clamped=np.array([0, 5, 2, 1, 7]),
-                          clamp_shift=np.array([0.0, 1e-8, 2e-3, 5e-4, 3e-8]))
-    out = hf.clamps_by_mode(res)
-    assert out == dict(clamped_positions_mpm_frames=12, max_clamp_shift_mpm_frames_m=3e-8,
-                       clamped_positions_gns_frames=3, max_clamp_shift_gns_frames_m=2e-3)
+    res = HybridResult(positions=None, nodes=None, mode=np.array([1, 0, 0, 1]),
+                       indicator=None, final_state=None, frame_dt=0.0025,
+                       clamped=np.array([0, 5, 2, 1, 7]),
+                       clamp_shift=np.array([0.0, 1e-8, 2e-3, 5e-4, 3e-8]),
+                       f_kept=np.zeros(5, np.int32))
+    split = dict(clamped_positions_mpm_frames=12, max_clamp_shift_mpm_frames_m=3e-8,
+                 clamped_positions_gns_frames=3, max_clamp_shift_gns_frames_m=2e-3)
+    assert res.clamps_by_mode() == split
+    summary = res.clamp_summary()  # what hybrid_families and run_hybrid record
+    assert {k: summary[k] for k in split} == split and summary["clamped_positions"] == 15
 
 
 @pytest.mark.parametrize("bad", ["K4", "M4K4", "K4M4:fast", "hybrid"])

@@ -28,7 +28,7 @@ from diffgns.hybrid.compare import (
     run_mpm,
     score_against,
 )
-from diffgns.hybrid.simulator import DEFAULT_SCHEDULE, MPM_MODE, Schedule
+from diffgns.hybrid.simulator import DEFAULT_SCHEDULE, Schedule
 from diffgns.models import model_path
 
 N_FRAMES = 125  # GNS frames of 5 ms (0.625 s, the flows are at rest), as `diffgns hybrid`
@@ -66,9 +66,8 @@ def evaluate(model, a: float, phi: float) -> dict:
         out[f"{name}_runout_error"] = s["runout_error"]
         # the particle map's clamps: those of the GNS frames (an MPM frame's are the MPM's
         # own, particles resting on a wall moved back by micrometres, and reported apart)
-        gns_frames = np.asarray(res.mode) != MPM_MODE
-        out[f"{name}_clamped"] = int(np.asarray(res.clamped)[1:][gns_frames].sum())
-        out[f"{name}_mpm_frame_clamped"] = t["clamped_positions"] - out[f"{name}_clamped"]
+        out[f"{name}_clamped"] = t["clamped_positions_gns_frames"]
+        out[f"{name}_mpm_frame_clamped"] = t["clamped_positions_mpm_frames"]
         out[f"{name}_finite"] = s["finite"]
     return out
 

@@ -163,7 +163,8 @@ class HybridState(NamedTuple):
         used_mpm: bool, the last frame was an MPM frame.
         t: int32, frames advanced since :meth:`Hybrid.init`.
         warming: bool, the next frame is a warm-up frame (the warm-up has not ended).
-        peak_ke: the largest kinetic energy per unit mass of the nodes so far, J/kg.
+        peak_ke: the largest kinetic energy per unit mass of the nodes so far, J/kg (kept
+            only with ``Schedule.warmup_settle``; 0 otherwise).
         clamp: :class:`~diffgns.clamp.ClampCount` of the last frame: positions moved into the
             domain by the MPM's substeps, the GNS's node prediction or the particle map.
         f_kept: int32, particles of the last frame whose F the "reconstruct" hand-off kept
@@ -236,10 +237,25 @@ class HybridResult:
         return int(gns[0]) if len(gns) else int(np.shape(self.mode)[0])
 
     def clamp_summary(self) -> dict:
-        """:func:`diffgns.clamp.clamp_summary` of the run's clamps, and ``f_kept_particles``:
+        """:func:`diffgns.clamp.clamp_summary` of the run's clamps, the same split by the
+        simulator that made each frame (:meth:`clamps_by_mode`), and ``f_kept_particles``:
         the hand-off's kept deformation gradients, summed over frames."""
-        return dict(clamp_summary(self.clamped, self.clamp_shift),
+        return dict(clamp_summary(self.clamped, self.clamp_shift), **self.clamps_by_mode(),
                     f_kept_particles=int(np.sum(np.asarray(self.f_kept))))
+
+    def clamps_by_mode(self) -> dict:
+        """Clamped positions and the largest clamp shift (m), split by the simulator that
+        made each frame (``mode``): ``clamped_positions_mpm_frames``,
+        ``max_clamp_shift_mpm_frames_m`` and the same for ``gns``. An MPM frame's clamps of
+        a few micrometres are the MPM's particles resting on a wall; a GNS frame's are the
+        GNS's nodes and the particle map's."""
+        count, shift = np.asarray(self.clamped)[1:], np.asarray(self.clamp_shift)[1:]
+        mpm = np.asarray(self.mode) == MPM_MODE
+        out = {}
+        for name, sel in (("mpm", mpm), ("gns", ~mpm)):
+            out[f"clamped_positions_{name}_frames"] = int(count[sel].sum())
+            out[f"max_clamp_shift_{name}_frames_m"] = float(shift[sel].max(initial=0.0))
+        return out
 
 
 class Hybrid:
@@ -321,10 +337,11 @@ class Hybrid:
         material = self.node_material(params.mpm)
         state = jax.lax.cond(use_mpm, lambda s: self._mpm_frame(params.mpm, s),
                              lambda s: self._gns_frame(params, material, s), state)
-        ke = self._kinetic_energy(state.history)
-        peak = jnp.maximum(state.peak_ke, ke)
         warm = state.warming & (t + 1 < sched.warmup)
+        peak = state.peak_ke
         if sched.warmup_settle is not None:  # and until the flow settles
+            ke = self._kinetic_energy(state.history)
+            peak = jnp.maximum(peak, ke)
             warm |= state.warming & ~(ke < sched.warmup_settle * peak)
         count = state.count + 1
         if sched.gns_frames == 0:
