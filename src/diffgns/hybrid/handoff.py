@@ -12,7 +12,7 @@ GNS nodes are cluster means of MPM particles (:func:`diffgns.graph.data.coarse_g
   ones) is carried through the GNS segment, and each cluster's mean velocity is the node's.
   The GNS knows nothing below the node scale, and the node field's least-squares gradient,
   a fit over neighbours 2.5 node spacings around, flattened it: at a thin front whose
-  particles spread from 0.70 to 1.13 m/s the extrapolated velocities spread from 0.88 to
+  particles spread from 0.72 to 1.13 m/s the extrapolated velocities spread from 0.88 to
   0.96 m/s, and each hand-off back to the MPM slowed the front (hybrid guide, "The
   particles' own velocity structure"). "rigid" moves every particle by its node's
   displacement and gives it the node's velocity (clusters keep their shape; what published
@@ -56,9 +56,9 @@ one stops at its face, counted like a clamp (:func:`keep_inside`).
 
 **Particles at a boundary move along it** (:func:`boundary_slip`): within
 :data:`BOUNDARY_SLIP_CELLS` MPM cells of a wall or obstacle face, a mapped particle's
-velocity into it is removed, as the MPM's grid removes it from its own particles; the node
-field's extrapolated velocity otherwise drove a sliding front into the frictional floor at
-every hand-off to the MPM.
+velocity into it is removed, as the MPM's grid removes it from its own particles; the mapped
+velocity (measured with the node field's extrapolated one) otherwise drove a sliding front
+into the frictional floor at every hand-off to the MPM.
 """
 from __future__ import annotations
 
@@ -303,8 +303,9 @@ def boundary_slip(x, v, lo, hi, band: float, obstacles=None):
     (:func:`diffgns.mpm.boundaries.normal_condition`). The tangential component and every
     velocity pointing away are unchanged.
     The MPM's own particles at a boundary carry no such component (its grid removes it
-    every substep); the node field's affine velocity, extrapolated from a cluster mean,
-    does, and a frictional boundary would take ``mu`` times it off the tangential speed.
+    every substep); a mapped velocity, its node's (a cluster mean) plus a deviation carried
+    from an earlier frame, does, and a frictional boundary would take ``mu`` times it off
+    the tangential speed.
 
     Args:
         x, v: (2, N) particle positions (m) and velocities (m/s).
