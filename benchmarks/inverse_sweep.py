@@ -63,9 +63,10 @@ def markdown(rows: list[dict], model: str) -> str:
                          f"failed: {r['failed']} |||||")
             continue
         ok = abs(r["error_deg"]) <= TARGET_DEG[r["simulator"]]
+        mark = " †" if extrapolated(r) else ""
         lines.append(
             f"| {r['simulator']} | {scene_label(r)} | {r['true_phi']:g} | "
-            f"{r['recovered_phi']:.2f} | {r['error_deg']:+.2f} | "
+            f"{r['recovered_phi']:.2f}{mark} | {r['error_deg']:+.2f} | "
             f"{'yes' if ok else 'no'} (±{TARGET_DEG[r['simulator']]:g}) | {r['iterations']} | "
             f"{r['seconds']:.0f} ({r['load_1min']:.1f}) |")
     done = [r for r in rows if "failed" not in r]
@@ -74,7 +75,16 @@ def markdown(rows: list[dict], model: str) -> str:
         n_ok = sum(e <= TARGET_DEG[sim] for e in errs)
         lines += ["", f"{sim}: {n_ok}/{len(errs)} cases within ±{TARGET_DEG[sim]:g}°; "
                   f"mean |error| {sum(errs) / len(errs):.2f}°, max {max(errs):.2f}°"]
+    if any(extrapolated(r) for r in done):
+        lines += ["", "† outside the friction angles of the model's training data (the run's "
+                  "warning): the network's material input was extrapolated"]
     return "\n".join(lines) + "\n"
+
+
+def extrapolated(row: dict) -> bool:
+    """Whether a row's recovered angle lies outside its model's training range (the warning
+    of :meth:`~diffgns.inverse.simulators.GNSSimulator.parameter_warnings`)."""
+    return bool(row.get("parameter_warnings"))
 
 
 def main(argv=None) -> None:
@@ -104,6 +114,9 @@ def main(argv=None) -> None:
     ap.add_argument("--starts", type=int, default=1,
                     help="with --scan: refine this many of the lowest scan points, keep the "
                          "lowest end")
+    ap.add_argument("--schedule", default=None,
+                    help="the hybrid's schedule, a name of hybrid_pareto.py (K2M8:S0.1, "
+                         "K2M10:W5, ...; default: the inversion's own, HybridSimulator's)")
     ap.add_argument("--out", default="inverse_sweep", help="results/<out>.json and .md")
     protocol.add_arguments(ap)
     args = ap.parse_args(argv)
@@ -128,6 +141,12 @@ def main(argv=None) -> None:
         scan = dict([parse_scan(f"friction_angle={lo}:{hi}:{int(n)}")])
     model = args.model or DEFAULT_MODEL
     loaded = load_gns(model) if set(args.simulators) - {"mpm"} else None
+    if args.schedule is not None:
+        from hybrid_pareto import parse_schedule
+
+        schedule = parse_schedule(args.schedule)
+    else:
+        schedule = None
     info = loaded[2] if loaded else model_info(model)
     RESULTS.mkdir(exist_ok=True)
     jpath, mpath = RESULTS / f"{args.out}.json", RESULTS / f"{args.out}.md"
@@ -165,6 +184,7 @@ def main(argv=None) -> None:
                       f"observation {t_obs:.0f} s", flush=True)
                 row = dict(simulator=sim_kind, **fields, objective=args.objective,
                            gradient=args.gradient, scan=args.scan, starts=args.starts,
+                           schedule=args.schedule if sim_kind == "hybrid" else None,
                            true_phi=phi,
                            start_phi=start,
                            nodes=col.n_nodes, particles=col.scene.n_particles,
@@ -172,7 +192,8 @@ def main(argv=None) -> None:
                 t1 = time.perf_counter()
                 try:
                     sim = make_simulator(sim_kind, col, model, loaded=loaded,
-                                         observed=observed, theta0=theta0)
+                                         observed=observed, theta0=theta0,
+                                         schedule=schedule)
                     objective = make_objective(args.objective, col, observed=observed)
                     tag = label.replace(" ", "_").replace(":", "_").replace("=", "")
                     s = solve(sim, objective, theta0, col, work / f"{sim_kind}_{tag}_{phi:g}",
@@ -185,6 +206,7 @@ def main(argv=None) -> None:
                                converged=s["converged"], stop_reason=s["stop_reason"],
                                seconds=s["wall_time_s"], compile_s=s["compile_s"],
                                warnings=s["warnings"], scan_losses=s["scan"],
+                               parameter_warnings=s["parameter_warnings"],
                                starts=s["starts"])
                 except Exception as e:  # noqa: BLE001 - a failed case is a row of the table
                     row["failed"] = f"{type(e).__name__}: {e}"[:200]

@@ -21,6 +21,7 @@ import granular_restart_probe as grp  # noqa: E402
 import granular_truth_spread as gts  # noqa: E402
 import hybrid_families as hf  # noqa: E402
 import hybrid_pareto as hp  # noqa: E402
+import inverse_sweep as isw  # noqa: E402
 import meshnet_accuracy_speed as mas  # noqa: E402
 import meshnet_runaway as mr  # noqa: E402
 
@@ -424,3 +425,20 @@ def test_truth_spread_takes_a_stored_datasets_scenes_by_index(monkeypatch):
     assert scene.n_particles == random_scene("squares", 5).n_particles
     with pytest.raises(SystemExit, match="not a trajectory of x.h5"):
         list(gts.scenes(argparse.Namespace(data="x.h5", cases=[2])))
+
+
+def test_inversion_table_marks_a_recovered_angle_outside_the_training_range():
+    """A row whose run warned that its recovered angle lies outside the model's training
+    data gets a dagger and the table a footnote; the scene's own warnings do not count."""
+    row = dict(simulator="gns", scene="squares:9000009", objective="deposit", true_phi=30.0,
+               recovered_phi=2.25, error_deg=-27.75, iterations=18, seconds=100.0,
+               load_1min=0.1, warnings=["an obstacle warning"],
+               parameter_warnings=["the friction_angle = 2.25 deg is outside ..."])
+    inside = dict(row, true_phi=20.0, recovered_phi=20.5, error_deg=0.5,
+                  parameter_warnings=[])
+    md = isw.markdown([row, inside], "gns_general")
+    lines = md.splitlines()
+    assert "| 2.25 † | -27.75 | no (±1) |" in next(ln for ln in lines if "| 30 |" in ln)
+    assert "| 20.50 | +0.50 | yes (±1) |" in next(ln for ln in lines if "| 20 |" in ln)
+    assert lines[-1].startswith("† outside the friction angles of the model's training data")
+    assert "†" not in isw.markdown([inside], "gns_general")

@@ -153,3 +153,35 @@ def test_hybrid_reference_defaults_to_twice_the_model_cells(monkeypatch):
     assert seen["reference_dx"] == pytest.approx(seen["scene_dx"] / 2)
     cmp.compare((None, None, info), 1.75, 27.5, None, 10, reference_cells=24)
     assert seen["labels"][0] == "MPM 24 cells (reference)"
+
+
+def test_hybrid_command_prints_what_the_model_was_not_trained_on(tmp_path, monkeypatch,
+                                                                   capsys):
+    """``diffgns hybrid`` states the model's warnings for the scene (here a friction angle
+    outside gns_columns' 20-45 deg) before its table, and none for a scene inside them. The
+    runs are stubbed: this checks the reporting, not the simulators."""
+    import numpy as np
+
+    from diffgns.hybrid import compare as cmp
+
+    def fake_mpm(scene, n_frames, stride, repeats=3):
+        return np.ones((n_frames + 1, scene.n_particles, 2)), dict(seconds=1.0,
+                                                                    clamped_positions=0)
+
+    def fake_hybrid(scene, gns, network, info, schedule, n_frames, repeats=3,
+                    cells_across=None):
+        class R:
+            positions = np.ones((n_frames + 1, scene.n_particles, 2))
+        return R(), dict(seconds=0.5, clamped_positions=0, mpm_fraction=0.0, warmup_frames=1)
+
+    monkeypatch.setattr(cmp, "run_mpm", fake_mpm)
+    monkeypatch.setattr(cmp, "run_hybrid", fake_hybrid)
+    for phi, warned in ((50.0, True), (30.0, False)):
+        out = tmp_path / f"h{phi:g}"
+        assert main(["hybrid", "--model", "gns_columns", "--friction-angle", str(phi),
+                     "--frames", "2", "--reference-cells", "12", "--out", str(out)]) == 0
+        text = capsys.readouterr().out
+        line = ("warning: gns_columns body friction_angle[column] = 50.00 deg is outside the "
+                "20.0-45.0 deg of the model's training data")
+        assert (line in text) == warned
+        assert text.index("simulator") > (text.index(line) if warned else 0)

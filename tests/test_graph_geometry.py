@@ -4,6 +4,7 @@ obstacle; obstacles survive the dataset round trip; a model that lists its train
 runs in a longer one."""
 import json
 
+import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -269,6 +270,10 @@ def test_training_on_two_boxes_with_families_obstacles_and_padding(tmp_path, mon
     assert sorted(map(tuple, [tuple(map(tuple, b)) for b in info["source"]["boxes"]])) == [
         ((0.0, 0.6), (0.0, 0.5)), ((0.0, 0.8), (0.0, 0.35))]
     assert info["families"] == ["obstacles", "squares"] and info["gns"]["use_obstacles"]
+    with h5py.File(tmp_path / "g.h5", "r") as f:  # the recorded range is the data's
+        tan = np.concatenate([f[k]["material_property"][()] for k in f])
+    assert info["source"]["friction_angle"] == pytest.approx(
+        np.degrees(np.arctan([tan.min(), tan.max()])), abs=1e-5)
     assert gns.config.bounds == ((0.0, 0.8), (0.0, 0.5))  # the union: the cell list's extent
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params))
     # the per-family held-out table of the benchmark script, on the same files: each case

@@ -99,3 +99,49 @@ def test_node_spacing_mode_keeps_the_trained_node_spacing():
     assert node_factor(4, 0.00625, 0.003125) == 16
     with pytest.raises(ValueError, match="'exact' or 'node-spacing'"):
         check_scene(_scene(), _info(), resolution="any")
+
+
+def test_a_friction_angle_outside_the_training_data_is_a_warning_with_its_range():
+    """gns_columns was trained on 20-45 deg: a body at 15 or 50 deg runs, with a warning that
+    names the body, the angle and the range; the edges of the range give none; a model folder
+    that does not record its range (made before it was) gives none."""
+    from diffgns.graph.support import friction_warnings
+
+    info = _info()
+    assert ModelSource.from_info(info).friction_angle == (20.0, 45.0)
+    for phi in (20.0, 45.0, 30.0):
+        assert check_scene(_scene(material=Sand(friction_angle=phi)), info,
+                           ).warnings == check_scene(_scene(), info).warnings
+    for phi in (15.0, 50.0):
+        w = [w for w in check_scene(_scene(material=Sand(friction_angle=phi)), info).warnings
+             if "friction" in w]
+        assert w == [f"body friction_angle[mass] = {phi:.2f} deg is outside the 20.0-45.0 deg "
+                     "of the model's training data: the network's material input "
+                     "tan(friction_angle) is extrapolated there, and the result is not one "
+                     "the model was trained to give"]
+    old = dict(info, source={k: v for k, v in info["source"].items() if k != "friction_angle"})
+    assert ModelSource.from_info(old).friction_angle is None
+    assert friction_warnings({"friction_angle": 60.0}, old) == []
+    # inversion parameters: only friction angles are checked, by name or body
+    got = friction_warnings({"friction_angle": 19.99, "friction_angle[column]": 45.00005,
+                             "E": 1e9, "friction_angle[1]": 45.01}, info, "the")
+    assert [g.split(" deg")[0] for g in got] == ["the friction_angle = 19.99",
+                                                 "the friction_angle[1] = 45.01"]
+
+
+def test_training_records_the_friction_range_of_its_data():
+    """``friction_range`` reads tan(phi) per particle; data without a material (zeros) have
+    none; the shipped general model's range is that of its training data's recipe."""
+    import numpy as np
+
+    from diffgns.graph.train_loop import friction_range
+
+    class T:
+        def __init__(self, phis):
+            self.material = np.tan(np.radians(np.asarray(phis, np.float32)))
+
+    assert friction_range([T([30.0] * 4), T([17.5, 17.5]), T([42.0])]) == pytest.approx(
+        [17.5, 42.0], abs=1e-5)
+    assert friction_range([T([0.0, 0.0])]) is None and friction_range([]) is None
+    lo, hi = ModelSource.from_info(_info("gns_general")).friction_angle
+    assert 15.0 <= lo < 15.5 and 44.5 < hi <= 45.0  # the recipe draws 15-45 deg

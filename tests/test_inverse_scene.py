@@ -161,3 +161,44 @@ def test_column_case_from_a_model_folder_is_a_scene_the_model_supports():
     assert check_scene(col.scene, cg16).factor == 16
     with pytest.raises(ValueError, match="not trained on column collapses"):
         ColumnCase.from_model({"source": {"kind": "squares"}, "gns": {"bounds": [[0, 1]] * 2}})
+
+
+def test_an_inversion_through_a_model_warns_when_it_ends_outside_the_training_range(
+        tmp_path, capsys):
+    """The learned adapters know their model's training range (gns_columns: 20-45 deg) and
+    the MPM has none; ``solve`` puts a recovered angle outside it in ``parameter_warnings``
+    and ``warnings`` and prints it before the result line; one inside gives none."""
+    from diffgns.inverse.job import solve
+    from diffgns.inverse.simulators import mpm_simulator
+
+    loaded = load_gns("gns_columns")
+    obs = SceneObservation.for_model(_obstacle_scene(), loaded[2], 20)
+    n = obs.n_nodes
+    gns = gns_simulator(obs, loaded=loaded, observed=np.zeros((obs.n_obs, n, 2)))
+    hyb = hybrid_simulator(obs, loaded=loaded)
+    for sim in (gns, hyb):
+        assert sim.parameter_warnings({"friction_angle": 30.0}) == []
+        (w,) = sim.parameter_warnings({"friction_angle": 52.0, "E": 1.0})
+        assert w.startswith("the friction_angle = 52.00 deg is outside the 20.0-45.0 deg")
+    assert mpm_simulator(obs).parameter_warnings({"friction_angle": 52.0}) == []
+
+    class Linear:  # positions linear in phi: the loss's minimum is where the target puts it
+        parameter_warnings = gns.parameter_warnings
+
+        def simulate(self, theta):
+            x = jnp.zeros((obs.n_obs, n, 2)) + 1e-3 * theta["friction_angle"]
+            return x, jnp.asarray(False)
+
+        def reallocate(self, theta):
+            pass
+
+    for target, warned in ((0.052, True), (0.035, False)):
+        s = solve(Linear(), lambda x, t=target: (x[-1, 0, 0] - t) ** 2,
+                  {"friction_angle": 40.0}, obs, tmp_path / str(target), max_iter=10,
+                  step_tol=1e-4)
+        assert s["recovered"]["friction_angle"] == pytest.approx(1e3 * target, abs=0.01)
+        assert bool(s["parameter_warnings"]) == warned
+        assert s["warnings"] == list(obs.warnings) + s["parameter_warnings"]
+        lines = capsys.readouterr().out.strip().splitlines()
+        assert lines[-1].startswith("recovered friction angle:")
+        assert lines[-2].startswith("warning: the friction_angle = 52.00 deg") == warned

@@ -129,6 +129,8 @@ def _hybrid(args) -> int:
     else:
         out = compare(model, args.aspect_ratio, args.friction_angle, sched, args.frames,
                       args.reference_cells, args.cells_across)
+    for w in out["warnings"]:
+        print(f"warning: {args.model} {w}", flush=True)
     print(f"{'simulator':44s} {'runout err':>10s} {'pos err mm':>10s} {'time s':>8s} "
           f"{'clamped':>8s}")
     for r in out["rows"]:

@@ -24,8 +24,10 @@ for:
 
 What the network has no feature for but can still run on (obstacles, other wall friction,
 other gravity, moving initial bodies when no training family had them, a body away from the
-left wall for a model trained on left-wall columns only) is returned as warnings: such runs
-are out of the training distribution, not impossible. :func:`diffgns.inverse.simulators.
+left wall for a model trained on left-wall columns only, a friction angle outside the
+training data's range, ``source.friction_angle``) is returned as warnings: such runs are out
+of the training distribution, not impossible. :func:`friction_warnings` gives the same
+warning for parameter values an inversion reaches. :func:`diffgns.inverse.simulators.
 default_model` prefers a model that has no warning for the scene.
 """
 from __future__ import annotations
@@ -40,7 +42,7 @@ from diffgns.scene.core import Scene
 from diffgns.scene.materials import Sand
 
 __all__ = ["ModelSource", "SceneSupport", "UnsupportedSceneError", "check_scene",
-           "node_factor", "particle_spacing"]
+           "friction_warnings", "node_factor", "particle_spacing"]
 
 #: particles per cell of the training data when the model folder does not record it
 #: (every dataset builder of :mod:`diffgns.io.datagen` uses 4)
@@ -67,6 +69,9 @@ class ModelSource:
         kind: the scene family of the training data (e.g. "column"), for messages.
         flip: the training MPM's ``Scene.flip`` (0: APIC alone, every model made before it
             was recorded).
+        friction_angle: ``(lo, hi)`` degrees, the range of the training data's friction
+            angles (the network's material input is their tangent); None when the folder
+            does not record it.
     """
 
     bounds: tuple
@@ -78,6 +83,7 @@ class ModelSource:
     material: dict = field(default_factory=dict)
     kind: str = "?"
     flip: float = 0.0
+    friction_angle: tuple[float, float] | None = None
 
     @classmethod
     def from_info(cls, info: dict) -> ModelSource:
@@ -96,7 +102,8 @@ class ModelSource:
                                                   DEFAULT_PARTICLES_PER_CELL)),
                    frame_dt=float(src.get("dt", 2.5e-3)), factor=int(info.get("factor", 1)),
                    frame_stride=int(info.get("frame_stride", 1)), material=material,
-                   kind=str(src.get("kind", "?")), flip=float(src.get("flip", 0.0)))
+                   kind=str(src.get("kind", "?")), flip=float(src.get("flip", 0.0)),
+                   friction_angle=_pair(src.get("friction_angle")))
 
     @property
     def dim(self) -> int:
@@ -142,6 +149,41 @@ def node_factor(factor: int, trained_spacing: float, spacing: float, dim: int = 
             f"{trained_spacing:g} m; at {spacing:g} m that is {f:g} particles per node, not a "
             "whole number: choose a resolution with an integer ratio")
     return int(round(f))
+
+
+def _pair(v) -> tuple[float, float] | None:
+    return None if v is None else (float(v[0]), float(v[1]))
+
+
+def friction_warnings(values: dict, info: dict, what: str = "") -> list[str]:
+    """Warnings for friction angles outside the model's training range.
+
+    Args:
+        values: ``{name: degrees}``; names whose base is ``friction_angle`` (``friction_angle``
+            or ``friction_angle[body]``, :mod:`diffgns.inverse.parameters`) are checked,
+            others ignored.
+        info: the model folder's ``config.json``; a folder without ``source.friction_angle``
+            (made before it was recorded) gives no warning.
+        what: how the values arose, for the message (e.g. "the recovered").
+    Returns:
+        one message per value outside ``[lo, hi]`` (with 1e-4 degrees of tolerance: the
+        float32 round trip of the stored tangents).
+    """
+    rng = ModelSource.from_info(info).friction_angle
+    if rng is None:
+        return []
+    lo, hi = rng
+    out = []
+    for name, v in values.items():
+        if name.split("[")[0] != "friction_angle":
+            continue
+        v = float(v)
+        if not lo - 1e-4 <= v <= hi + 1e-4:
+            out.append(f"{(what + ' ') if what else ''}{name} = {v:.2f} deg is outside the "
+                       f"{lo:.1f}-{hi:.1f} deg of the model's training data: the network's "
+                       "material input tan(friction_angle) is extrapolated there, and the "
+                       "result is not one the model was trained to give")
+    return out
 
 
 def _close(a: float, b: float) -> bool:
@@ -254,6 +296,9 @@ def _warnings(scene: Scene, info: dict) -> list[str]:
                        f"{x_left:g} m); the model was trained on columns against the left wall "
                        "only, and a column against the right wall is 64-87% off in runout "
                        "(gns_cg16_pfn on the validation scenes; GNS guide)")
+    out += friction_warnings(
+        {f"friction_angle[{b.name or i}]": b.material.friction_angle
+         for i, b in enumerate(scene.bodies) if isinstance(b.material, Sand)}, info, "body")
     trained_g = (0.0, -9.81) + (0.0,) * (scene.dim - 2)
     if tuple(scene.gravity or ()) != trained_g:
         out.append(f"gravity {scene.gravity} m/s^2 differs from the training ("

@@ -139,6 +139,19 @@ def _granular_source(paths) -> dict:
     return next(iter(got.values()))
 
 
+def friction_range(trajs) -> list[float] | None:
+    """``[lo, hi]``, degrees: the friction angles of the trajectories' material input
+    (``Trajectory.material``, tan(friction angle) per particle; zeros, data without a
+    material, are skipped); None when no trajectory has one."""
+    tan = [np.asarray(t.material, np.float64).ravel() for t in trajs]
+    tan_all = np.concatenate(tan) if tan else np.zeros(0)
+    tan_all = tan_all[tan_all > 0]
+    if not tan_all.size:
+        return None
+    return [float(np.degrees(np.arctan(tan_all.min()))),
+            float(np.degrees(np.arctan(tan_all.max())))]
+
+
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     """Load training data and build the GNS whose normaliser matches it. The data fix the
     model's dimension (2D or 3D: the axes of the union of the training boxes); datasets of
@@ -171,6 +184,8 @@ def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):
     # the model supports those boxes (graph.support)
     stats["source"]["boxes"] = sorted({tuple(map(tuple, np.asarray(t.bounds, float).tolist()))
                                        for t in trajs})
+    if (phi := friction_range(trajs)) is not None:  # graph.support warns outside it
+        stats["source"]["friction_angle"] = phi
     bounds = gns_kw.pop("bounds", None) or _union_bounds(trajs)
     if trajs and len(bounds) != len(trajs[0].bounds):
         raise InputError("bounds", f"{len(bounds)}D bounds for {len(trajs[0].bounds)}D data",

@@ -166,7 +166,9 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
 
     ``model`` is ``(gns, params, info)`` from :func:`~diffgns.graph.train_loop.load_model`;
     ``labels``: names of the reference and the MPM rows (default: their cell sizes).
-    Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s, "bounds"}``;
+    Returns ``{"rows": [...], "positions": {label: (T+1, N, 2)}, "frame_dt": s, "bounds",
+    "warnings"}`` (``warnings``: what the scene has that the model was not trained on,
+    :func:`~diffgns.graph.support.check_scene`);
     each row has the label, the scores of :func:`score_against`, the timing and the run's
     position clamps (``clamped_positions``, ... of :func:`diffgns.clamp.clamp_summary`).
     """
@@ -176,8 +178,8 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
     wall = float(scene.domain[0][0])
     gns_only = Schedule(warmup=schedule.warmup, gns_frames=1, mpm_frames=0,
                         particle_map=schedule.particle_map)
-    # refuse an unsupported scene before any run
-    check_scene(scene, info, "exact" if cells_across is None else "node-spacing")
+    # refuse an unsupported scene before any run; keep what it was not trained on
+    sup = check_scene(scene, info, "exact" if cells_across is None else "node-spacing")
     ref, t_ref = run_mpm(reference, n_frames, stride, repeats=1)
     x_mpm, t_mpm = run_mpm(scene, n_frames, stride, repeats)
     runs = {labels[0]: (ref, t_ref), labels[1]: (x_mpm, t_mpm)}
@@ -187,7 +189,8 @@ def compare_scene(model, scene, reference, schedule: Schedule, n_frames: int,
     rows = [dict(label=label, **score_against(x, ref, wall), **t)
             for label, (x, t) in runs.items()]
     return dict(rows=rows, positions={k: v[0] for k, v in runs.items()},
-                frame_dt=float(scene.frame_dt) * stride, bounds=scene.domain)
+                frame_dt=float(scene.frame_dt) * stride, bounds=scene.domain,
+                warnings=list(sup.warnings))
 
 
 def compare(model, aspect_ratio: float, friction_angle: float, schedule: Schedule,

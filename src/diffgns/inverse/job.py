@@ -48,11 +48,13 @@ DEFAULT_BLOCK = {"mpm": 25, "gns": 10, "hybrid": 10}
 
 def make_simulator(kind: str, obs: SceneObservation, model=DEFAULT_MODEL, loaded=None,
                    observed=None, history: str = "observed", block: int | None = None,
-                   theta0: dict | None = None):
+                   theta0: dict | None = None, schedule=None):
     """The ``kind`` ("mpm", "gns" or "hybrid") adapter of ``obs`` (GNS ``history``:
     "observed" needs ``observed`` nodes; "mpm" is allocated at ``theta0``). ``block``:
-    frames per ``jax.checkpoint`` block (None: :data:`DEFAULT_BLOCK`, 0: none). Refuses to
-    fit (the names of ``theta0``) what the simulator has no input for."""
+    frames per ``jax.checkpoint`` block (None: :data:`DEFAULT_BLOCK`, 0: none);
+    ``schedule``: the hybrid's :class:`~diffgns.hybrid.simulator.Schedule` (None: the
+    :class:`~diffgns.inverse.simulators.HybridSimulator` default). Refuses to fit (the names
+    of ``theta0``) what the simulator has no input for."""
     if kind not in SIMULATORS:
         raise ValueError(f"simulator {kind!r} is unknown; use one of {SIMULATORS}")
     obs.check_names(list(theta0 or {}))
@@ -61,7 +63,8 @@ def make_simulator(kind: str, obs: SceneObservation, model=DEFAULT_MODEL, loaded
     if kind == "mpm":
         return mpm_simulator(obs, block=block)
     if kind == "hybrid":
-        return hybrid_simulator(obs, model, loaded=loaded, checkpoint_block=block)
+        return hybrid_simulator(obs, model, loaded=loaded, checkpoint_block=block,
+                                schedule=schedule)
     sim = gns_simulator(obs, model, history=history, observed=observed,
                         checkpoint_block=block, loaded=loaded)
     if history == "mpm":
@@ -228,6 +231,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
     assert isinstance(aux, dict)
     fitted = np.asarray(aux["positions"])
     truth = truth or {}
+    extrap = sim.parameter_warnings(res.theta)  # a learned model outside its training data
     summary = dict(
         simulator=label, optimizer=optimizer, gradient=gradient, target=truth or None,
         start=dict(theta0), recovered=res.theta,
@@ -242,7 +246,7 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
         xla_gradient_memory=res.xla_memory, nodes=obs.n_nodes,
         particles=obs.scene.n_particles, frames=obs.n_obs, frame_dt=obs.frame_dt,
         coarse_grain=obs.coarse_grain, frame_stride=obs.frame_stride,
-        warnings=list(obs.warnings), **(extra or {}))
+        warnings=list(obs.warnings) + extrap, parameter_warnings=extrap, **(extra or {}))
     if "friction_angle" in summary["error"]:
         summary["error_deg"] = summary["error"]["friction_angle"]
     summary["history"] = history_for_json(res.history)
@@ -268,6 +272,8 @@ def solve(sim, objective: Callable, theta0: dict, obs: SceneObservation, out,
           f"{summary['iterations']} iterations ({res.stop_reason}), peak RSS "
           f"{summary['peak_rss_mb']:.0f} MB, XLA gradient temp "
           f"{res.xla_memory.get('temp_size_in_bytes', 0) / 1e6:.0f} MB; outputs in {out}")
+    for w in extrap:
+        print(f"warning: {w}", flush=True)
     print(recovered_line(res.theta, truth, label), flush=True)
     return summary
 

@@ -13,7 +13,9 @@ and frames, so objectives and targets do not care which one produced a trajector
   warm-up, then GNS segments with MPM refinement).
 
 Every adapter has ``simulate(theta) -> (positions, overflow)`` (traceable), is callable
-(``theta -> positions``) and has ``reallocate(theta)`` (outside jit). The neighbour list of
+(``theta -> positions``) and has ``reallocate(theta)`` (outside jit) and
+``parameter_warnings(theta)`` (a learned simulator's: values outside its training data,
+:func:`~diffgns.graph.support.friction_warnings`). The neighbour list of
 a learned simulator travels in its state: the adapter holds an allocated initial state, and
 ``reallocate`` replaces it by one with room for a rollout at ``theta``
 (:func:`diffgns.interface.rollout_safe`); :func:`diffgns.inverse.optimize` calls it through
@@ -76,6 +78,10 @@ class MPMSimulator:
     def reallocate(self, theta) -> None:
         """Nothing to re-allocate."""
 
+    def parameter_warnings(self, theta) -> list[str]:
+        """None: the MPM has no training range."""
+        return []
+
 
 def mpm_simulator(obs: SceneObservation, block: int | None = 25) -> MPMSimulator:
     """The :class:`MPMSimulator` of ``obs``."""
@@ -86,7 +92,20 @@ def _tan_phi(theta):
     return friction_feature(theta["friction_angle"])
 
 
-class GNSSimulator:
+class _Learned:
+    """What the learned adapters share: their model's training range."""
+
+    info: dict | None
+
+    def parameter_warnings(self, theta) -> list[str]:
+        """Warnings for the values of ``theta`` (physical units) outside the model's training
+        data (:func:`~diffgns.graph.support.friction_warnings`)."""
+        from diffgns.graph.support import friction_warnings
+
+        return friction_warnings(theta, self.info or {}, "the")
+
+
+class GNSSimulator(_Learned):
     """theta -> (C + 1 + n_steps, n, 2) positions of a GNS rollout (jit/grad-friendly).
 
     Args:
@@ -103,12 +122,14 @@ class GNSSimulator:
             ``tan(theta["friction_angle"])``).
         geometry: the walls and obstacles the network sees
             (:class:`~diffgns.graph.geometry.Geometry`; default the GNS's box, no obstacle).
+        info: the model folder's ``config.json`` (for :meth:`parameter_warnings`; None: no
+            training range known).
     """
 
     def __init__(self, gns, network, history, particle_type, n_steps: int,
                  checkpoint_block: int | None = 10, extra_capacity: int = 4,
-                 material: Callable | None = None, geometry=None):
-        self.gns, self.network = gns, network
+                 material: Callable | None = None, geometry=None, info: dict | None = None):
+        self.gns, self.network, self.info = gns, network, info
         self.geometry = geometry  # walls and obstacles (None: the GNS's box, no obstacle)
         self.C = gns.config.history
         self._history = history if callable(history) else None
@@ -168,7 +189,7 @@ class GNSSimulator:
         self.state = self.state._replace(nbrs=start.nbrs)
 
 
-class HybridSimulator:
+class HybridSimulator(_Learned):
     """theta -> (n_obs, n, 2) node positions of a :class:`diffgns.hybrid.Hybrid` rollout
     (MPM warm-up, then GNS segments with MPM refinement), differentiable end to end.
 
@@ -178,13 +199,15 @@ class HybridSimulator:
         schedule: :class:`diffgns.hybrid.Schedule` (default: 5 MPM warm-up frames, then 10
             GNS frames and 2 MPM frames alternately, deformation carried over).
         checkpoint_block: GNS frames per ``jax.checkpoint`` block.
+        info: the model folder's ``config.json`` (for :meth:`parameter_warnings`).
     """
 
     def __init__(self, obs: SceneObservation, gns, network, schedule=None,
-                 checkpoint_block: int | None = 10, extra_capacity: int = 4):
+                 checkpoint_block: int | None = 10, extra_capacity: int = 4,
+                 info: dict | None = None):
         from diffgns.hybrid.simulator import Hybrid, Schedule
 
-        self.obs, self.network = obs, network
+        self.obs, self.network, self.info = obs, network, info
         self.schedule = schedule or Schedule(warmup=5, gns_frames=10, mpm_frames=2)
         gns, geometry = gns.for_scene(obs.scene)  # the scene's walls and obstacles
         self.hybrid = Hybrid(obs.mpm, gns, obs.frame_stride, obs.coarse_grain, self.schedule,
@@ -311,7 +334,7 @@ def gns_simulator(obs: SceneObservation, model=DEFAULT_MODEL, history="observed"
         raise ValueError(f"history must be 'observed' or 'mpm', got {history!r}")
     n_steps = obs.n_obs - (C + 1) if n_steps is None else n_steps
     return GNSSimulator(gns, network, hist, obs.node_type, n_steps, checkpoint_block,
-                        material=obs.node_material, geometry=geometry)
+                        material=obs.node_material, geometry=geometry, info=loaded[2])
 
 
 def hybrid_simulator(obs: SceneObservation, model=DEFAULT_MODEL, loaded=None,
@@ -320,5 +343,5 @@ def hybrid_simulator(obs: SceneObservation, model=DEFAULT_MODEL, loaded=None,
     naming why, if the model does not support the scene or the observation)."""
     loaded = loaded or load_gns(model)
     check_model(obs, loaded, model)
-    gns, network, _ = loaded
-    return HybridSimulator(obs, gns, network, **kw)
+    gns, network, info = loaded
+    return HybridSimulator(obs, gns, network, info=info, **kw)
