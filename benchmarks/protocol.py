@@ -18,7 +18,8 @@ The rules:
   every line :meth:`Run.print` prints starts with ``INVALID (load x.xx)``.
 * **Threads.** ``--threads 2`` (the default) is the machine's two cores; torch and Taichi are
   given 2 threads (:attr:`Run.threads`). ``--threads 1`` re-executes the same command under
-  ``taskset -c 0`` with XLA, OpenMP, MKL and OpenBLAS limited to one thread
+  ``taskset -c 0`` (the lowest CPU the process may use: under ``taskset -c 1``, CPU 1) with
+  XLA, OpenMP, MKL and OpenBLAS limited to one thread
   (:func:`pinned_command`, :func:`pinned_env`); the script passes :attr:`Run.threads` to
   ``torch.set_num_threads`` and ``ti.init(cpu_max_num_threads=...)``. ``--threads both``
   measures with 2 threads in this process, then runs the pinned 1-thread variant as a child
@@ -127,10 +128,17 @@ def add_arguments(parser: argparse.ArgumentParser, threads: str = "2") -> None:
 
 
 # ------------------------------------------------------------------ thread modes
-def pinned_command(argv: Sequence[str], executable: str = sys.executable) -> list[str]:
-    """The command that re-runs ``argv`` (script + arguments) pinned to CPU ``PIN_CPU``
-    with one thread: ``taskset -c 0 python script ... --threads 1``."""
-    return ["taskset", "-c", str(PIN_CPU), executable, *argv, "--threads", "1"]
+def pinned_command(argv: Sequence[str], executable: str = sys.executable,
+                   affinity: Sequence[int] | None = None) -> list[str]:
+    """The command that re-runs ``argv`` (script + arguments) pinned to one CPU with one
+    thread: ``taskset -c <cpu> python script ... --threads 1``. The CPU is the lowest of
+    ``affinity`` (default: this process's), so a run started on all cores is pinned to
+    ``PIN_CPU`` (0) and one started under ``taskset -c 1`` stays on CPU 1 (an
+    accuracy-only sweep beside another job on CPU 0)."""
+    if affinity is None:
+        affinity = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    cpu = min(affinity) if affinity else PIN_CPU
+    return ["taskset", "-c", str(cpu), executable, *argv, "--threads", "1"]
 
 
 def pinned_env(environ: Mapping[str, str]) -> dict[str, str]:

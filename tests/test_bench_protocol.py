@@ -163,6 +163,9 @@ def test_results_path_names_a_file_in_results_or_a_given_path(tmp_path):
 def test_pinned_command_and_env():
     cmd = protocol.pinned_command(["bench.py", "--repeats", "3"], executable="/py")
     assert cmd == ["taskset", "-c", "0", "/py", "bench.py", "--repeats", "3", "--threads", "1"]
+    # a run started under `taskset -c 1` stays on CPU 1; on all cores it takes CPU 0
+    assert protocol.pinned_command(["b.py"], "/py", affinity=[1])[:3] == ["taskset", "-c", "1"]
+    assert protocol.pinned_command(["b.py"], "/py", affinity=[1, 0])[2] == "0"
     env = protocol.pinned_env({"XLA_FLAGS": "--xla_foo=1", "HOME": "/h"})
     assert env["XLA_FLAGS"] == ("--xla_foo=1 --xla_cpu_multi_thread_eigen=false "
                                 "intra_op_parallelism_threads=1")
