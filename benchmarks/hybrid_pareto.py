@@ -78,7 +78,7 @@ QUICK = ["GNS", "K2M5", "K4M4"]
 #: the default set (~10 min on a quiet 2-core machine): the simulators behind the published
 #: speed-ups (gns_cg16_pf K=8 M=2, gns_cg16 K=4 M=4) and the MPMs of the front
 DEFAULT_MODELS = ("gns_cg16_pf", "gns_cg16")
-DEFAULT_SCHEDULES = ("GNS", "K8M2", "K2M8:S0.1")
+DEFAULT_SCHEDULES = ("GNS", "K8M2", "K2M8:S0.05")
 DEFAULT_OTHER = ("GNS", "K4M4")
 DEFAULT_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / \
     "diffgns" / "hybrid_pareto"

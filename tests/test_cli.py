@@ -119,7 +119,7 @@ def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(ca
     assert hybrid_schedule(args) == DEFAULT_SCHEDULE
     given = build_parser().parse_args(["hybrid", "--gns-frames", "5", "--mpm-frames", "0",
                                        "--warmup", "6"])
-    assert hybrid_schedule(given) == Schedule(warmup=6, warmup_settle=0.1, gns_frames=5,
+    assert hybrid_schedule(given) == Schedule(warmup=6, warmup_settle=0.05, gns_frames=5,
                                               mpm_frames=0)
     fixed = build_parser().parse_args(["hybrid", "--warmup-settle", "none", "--warmup", "150"])
     assert hybrid_schedule(fixed) == Schedule(warmup=150, gns_frames=8, mpm_frames=2)

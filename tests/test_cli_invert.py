@@ -115,6 +115,14 @@ def test_invert_argument_errors_name_the_fix(tmp_path, capsys):
     assert main(base + ["--fit", "E=1e6:1e5:1e7", "--frames", "4", "--simulator", "gns",
                         "--coarse-grain", "2"]) == 2
     assert "--coarse-grain and --frame-stride are for the MPM alone" in capsys.readouterr().err
+    # the hybrid's schedule options with another simulator: refused, not ignored
+    fit = ["--fit", "friction_angle=40:0:90", "--frames", "4"]
+    assert main(base + fit + ["--warmup-settle", "0.05"]) == 2
+    assert ("--warmup-settle set the hybrid's schedule; use them with --simulator hybrid"
+            in capsys.readouterr().err)
+    assert main(base + fit + ["--simulator", "gns", "--mpm-frames", "4", "--particle-map",
+                              "rigid"]) == 2
+    assert "--mpm-frames, --particle-map set the hybrid's" in capsys.readouterr().err
 
 
 def test_parser_lists_every_command_and_the_invert_choices_match_the_library():
@@ -165,3 +173,27 @@ def test_default_model_is_the_most_accurate_shipped_model_that_supports_the_scen
     assert (default_model(left), default_model(right)) == ("gns_cg16_pfn", "gns_general")
     ex = (ROOT / "examples/column_collapse_inverse.py").read_text()
     assert "default=str(DEFAULT_MODEL)" in ex and "default ``gns_cg16_pfn``" in ex
+
+
+def test_invert_through_the_hybrid_takes_the_hybrid_commands_schedule(monkeypatch, capsys):
+    """Without schedule options ``diffgns invert --simulator hybrid`` runs
+    ``DEFAULT_SCHEDULE``, the default of ``diffgns hybrid``; the options change it the same
+    way. The simulator is stubbed: this checks the plumbing."""
+    from diffgns.hybrid.simulator import DEFAULT_SCHEDULE
+
+    seen = []
+
+    def fake(kind, obs, model, **kw):
+        seen.append((kind, kw["schedule"]))
+        raise ValueError("stop; stubbed")
+
+    monkeypatch.setattr(job, "make_simulator", fake)
+    base = ["invert", str(ROOT / "scenes/sand_into_obstacle.toml"), "--fit",
+            "friction_angle=40:0:90", "--observed-runout", "0.3", "--frames", "4",
+            "--simulator", "hybrid"]
+    assert main(base) == 2 and main(base + ["--warmup-settle", "0.05", "--mpm-frames",
+                                            "3"]) == 2
+    assert seen[0] == ("hybrid", DEFAULT_SCHEDULE)
+    assert seen[1][1] == dataclasses.replace(DEFAULT_SCHEDULE, warmup_settle=0.05,
+                                             mpm_frames=3)
+    assert f"hybrid schedule: {DEFAULT_SCHEDULE.label}" in capsys.readouterr().out

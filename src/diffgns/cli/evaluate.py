@@ -93,12 +93,16 @@ def hybrid_schedule(args):
 
     from diffgns.hybrid.simulator import DEFAULT_SCHEDULE
 
-    given = {k: getattr(args, k) for k in ("warmup", "gns_frames", "mpm_frames", "warmup_settle")
-             if getattr(args, k) is not None}
+    given = {k: getattr(args, k) for k in SCHEDULE_OPTIONS if getattr(args, k) is not None}
     if given.get("warmup_settle") == "none":
         given["warmup_settle"] = None
-    return dataclasses.replace(DEFAULT_SCHEDULE, **given, handoff=args.handoff,
-                               adaptive_tol=args.adaptive_tol, particle_map=args.particle_map)
+    return dataclasses.replace(DEFAULT_SCHEDULE, **given)
+
+
+#: the :class:`~diffgns.hybrid.simulator.Schedule` fields :func:`add_schedule_arguments`
+#: sets (each option's default None: ``DEFAULT_SCHEDULE``'s value)
+SCHEDULE_OPTIONS = ("warmup", "warmup_settle", "gns_frames", "mpm_frames", "handoff",
+                    "particle_map", "adaptive_tol")
 
 
 def _hybrid(args) -> int:
@@ -161,6 +165,33 @@ def _hybrid(args) -> int:
     return 0
 
 
+def add_schedule_arguments(h) -> None:
+    """The hybrid schedule's options (``diffgns hybrid`` and ``diffgns invert --simulator
+    hybrid``), read back by :func:`hybrid_schedule`."""
+    # defaults None: DEFAULT_SCHEDULE's (the jax-free parser does not import the hybrid)
+    h.add_argument("--warmup", type=count, default=None,
+                   help="MPM frames before the first GNS frame, count >= 1; with "
+                   "a settling warm-up the least (default 5)")
+    h.add_argument("--warmup-settle", type=fraction_or_none, default=None,
+                   metavar="FRACTION",
+                   help="the warm-up lasts until the flow's kinetic energy per unit mass has "
+                   "fallen below FRACTION (in (0, 1)) of its peak; 'none': a fixed frame count "
+                   "(default 0.05: the MPM runs the fast phase of the flow, however long "
+                   "it lasts; hybrid guide)")
+    h.add_argument("--gns-frames", type=count, default=None,
+                   help="M: GNS frames per segment, count (default 8)")
+    h.add_argument("--mpm-frames", type=int, default=None,
+                   help="K: MPM frames per segment, count >= 0 (default 2)")
+    h.add_argument("--handoff", default=None, choices=["carry", "reset", "reconstruct"],
+                   help="state handed from GNS to MPM: carry the MPM state, reset it, or "
+                   "reconstruct it from the nodes (default carry)")
+    h.add_argument("--particle-map", default=None, choices=["affine", "rigid"],
+                   help="how MPM particles follow their GNS node in GNS frames (default "
+                   "affine)")
+    h.add_argument("--adaptive-tol", type=positive, default=None,
+                   help="energy-balance tolerance (J/kg) for adaptive switching")
+
+
 def register(sub) -> None:
     """Add the ``rollout`` and ``hybrid`` parsers to ``sub``."""
     r = sub.add_parser("rollout", help="roll a trained GNS or MeshGraphNet out against a "
@@ -189,27 +220,7 @@ def register(sub) -> None:
     h.add_argument("--friction-angle", type=finite, default=27.5,
                    help="friction angle, degrees in (0, 90) (default 27.5)")
     h.add_argument("--frames", type=count, default=125, help="GNS frames, count (default 125)")
-    # defaults None: DEFAULT_SCHEDULE's (the jax-free parser does not import the hybrid)
-    h.add_argument("--warmup", type=count, default=None,
-                   help="MPM frames before the first GNS frame, count >= 1; with "
-                   "a settling warm-up the least (default 5)")
-    h.add_argument("--warmup-settle", type=fraction_or_none, default=None,
-                   metavar="FRACTION",
-                   help="the warm-up lasts until the flow's kinetic energy per unit mass has "
-                   "fallen below FRACTION (in (0, 1)) of its peak; 'none': a fixed frame count "
-                   "(default 0.1: the MPM runs the fast phase of the flow, however long "
-                   "it lasts; hybrid guide)")
-    h.add_argument("--gns-frames", type=count, default=None,
-                   help="M: GNS frames per segment, count (default 8)")
-    h.add_argument("--mpm-frames", type=int, default=None,
-                   help="K: MPM frames per segment, count >= 0 (default 2)")
-    h.add_argument("--handoff", default="carry", choices=["carry", "reset", "reconstruct"],
-                   help="state handed from GNS to MPM: carry the MPM state, reset it, or "
-                   "reconstruct it from the nodes (default carry)")
-    h.add_argument("--particle-map", default="affine", choices=["affine", "rigid"],
-                   help="how MPM particles follow their GNS node in GNS frames")
-    h.add_argument("--adaptive-tol", type=positive, default=None,
-                   help="energy-balance tolerance (J/kg) for adaptive switching")
+    add_schedule_arguments(h)
     h.add_argument("--cells-across", type=count, default=None,
                    help="MPM cells across the column in GNS/hybrid runs, count (default: the "
                    "model's data)")

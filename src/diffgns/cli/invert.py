@@ -22,6 +22,7 @@ import sys
 import time
 
 from diffgns.cli.checks import count, finite, positive
+from diffgns.cli.evaluate import SCHEDULE_OPTIONS, add_schedule_arguments, hybrid_schedule
 
 #: as in :mod:`diffgns.inverse.job` (repeated so that building the parser imports no JAX)
 SIMULATORS = ("mpm", "gns", "hybrid")
@@ -76,6 +77,10 @@ def run(args) -> int:
         if args.coarse_grain or args.frame_stride:
             raise ValueError("--coarse-grain and --frame-stride are for the MPM alone; with "
                              "--model (or a learned simulator) the model folder sets them")
+    given = [f"--{k.replace('_', '-')}" for k in SCHEDULE_OPTIONS if getattr(args, k) is not None]
+    if given and args.simulator != "hybrid":
+        raise ValueError(f"{', '.join(given)} set the hybrid's schedule; use them with "
+                         "--simulator hybrid")
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
     fits = [parse_fit(s) for s in args.fit]
@@ -115,8 +120,11 @@ def run(args) -> int:
           f"{scene.substeps} substeps); observation: {what}; simulator: {args.simulator}"
           + (f" ({args.model}, history {history})" if args.simulator == "gns" else ""),
           flush=True)
+    schedule = hybrid_schedule(args) if args.simulator == "hybrid" else None
+    if schedule is not None:
+        print(f"hybrid schedule: {schedule.label}", flush=True)
     sim = make_simulator(args.simulator, obs, args.model, loaded=loaded, observed=nodes,
-                         history=history, block=args.block, theta0=theta0)
+                         history=history, block=args.block, theta0=theta0, schedule=schedule)
     name = args.objective or ("runout" if nodes is not None else "runout-max")
     objective = make_objective(name, obs, observed=nodes, frame=args.frame,
                                observed_runout=args.observed_runout, origin=args.origin,
@@ -186,6 +194,9 @@ def register(sub) -> None:
                    "gns_cg16_pfn for columns against the left wall, gns_general for "
                    "obstacles, moving bodies or the right wall); "
                    "with the MPM: observe as this model does")
+    g = p.add_argument_group("the hybrid's schedule (--simulator hybrid; defaults: those of "
+                             "`diffgns hybrid`)")
+    add_schedule_arguments(g)
     p.add_argument("--history", default="auto", choices=["auto", "observed", "mpm"],
                    help="GNS initial frames: the observed ones, or a differentiable MPM "
                    "start-up at the trial parameters (auto: observed when the observation "

@@ -196,8 +196,11 @@ class HybridSimulator(_Learned):
     Args:
         obs: the :class:`SceneObservation` (its MPM and nodes are shared).
         gns, network: the trained GNS and its weights.
-        schedule: :class:`diffgns.hybrid.Schedule` (default: 5 MPM warm-up frames, then 10
-            GNS frames and 2 MPM frames alternately, deformation carried over).
+        schedule: :class:`diffgns.hybrid.Schedule` (default
+            :data:`~diffgns.hybrid.simulator.DEFAULT_SCHEDULE`, the schedule of ``diffgns
+            hybrid``; until 2026-12-07 the inversion had its own, 5 MPM warm-up frames then
+            10 GNS frames and 2 MPM frames alternately: ``Schedule(gns_frames=10,
+            mpm_frames=2)``).
         checkpoint_block: GNS frames per ``jax.checkpoint`` block.
         info: the model folder's ``config.json`` (for :meth:`parameter_warnings`).
     """
@@ -205,10 +208,10 @@ class HybridSimulator(_Learned):
     def __init__(self, obs: SceneObservation, gns, network, schedule=None,
                  checkpoint_block: int | None = 10, extra_capacity: int = 4,
                  info: dict | None = None):
-        from diffgns.hybrid.simulator import Hybrid, Schedule
+        from diffgns.hybrid.simulator import DEFAULT_SCHEDULE, Hybrid
 
         self.obs, self.network, self.info = obs, network, info
-        self.schedule = schedule or Schedule(warmup=5, gns_frames=10, mpm_frames=2)
+        self.schedule = schedule or DEFAULT_SCHEDULE
         gns, geometry = gns.for_scene(obs.scene)  # the scene's walls and obstacles
         self.hybrid = Hybrid(obs.mpm, gns, obs.frame_stride, obs.coarse_grain, self.schedule,
                              geometry=geometry)
