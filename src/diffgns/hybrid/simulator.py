@@ -138,7 +138,7 @@ class Schedule:
 #: energy per unit mass is below 0.05 of its peak so far (at least 5 frames), then 2 MPM
 #: frames after every 8 GNS frames. Chosen on a held-out draw made after the settling
 #: warm-up existed (``make granular-fresh3-data``, 48 cases, 2026-12-07): with ``gns_general``
-#: it was within 5% / 5% on 47 cases against 44 for a tenth (the default of the day before),
+#: it was within 5% / 5% on 47 cases against 44 for a tenth (the default one session before),
 #: at a mean position error of 0.007-0.010 against 0.016-0.038 and 70-73% MPM frames against
 #: 61-68%, and never worse than the GNS alone (hybrid guide, "A twentieth, on a fresh draw").
 DEFAULT_SCHEDULE = Schedule(warmup_settle=0.05, gns_frames=8, mpm_frames=2)
