@@ -33,9 +33,8 @@ import jax
 import numpy as np
 import protocol
 from granular_heldout import samples, scene_of
-from hybrid_pareto import parse_schedule, schedule_name
+from hybrid_pareto import DEFAULT_SCHEDULES, parse_schedule, schedule_name
 
-DEFAULT_SCHEDULES = ("GNS", "K8M2", "K2M8:S0.05")
 POS = "final_position_error_rel_displacement"
 TRACE_EVERY = 25  # frames between the recorded mean node errors and centroids
 

@@ -442,3 +442,13 @@ def test_inversion_table_marks_a_recovered_angle_outside_the_training_range():
     assert "| 20.50 | +0.50 | yes (±1) |" in next(ln for ln in lines if "| 20 |" in ln)
     assert lines[-1].startswith("† outside the friction angles of the model's training data")
     assert "†" not in isw.markdown([inside], "gns_general")
+
+
+def test_benchmark_default_sets_name_the_library_default_schedule():
+    """The front and the family sweep run ``DEFAULT_SCHEDULE`` by default, by a name that
+    reads back to it (so the benchmarks follow the default when it changes)."""
+    from diffgns.hybrid.simulator import DEFAULT_SCHEDULE
+
+    assert hp.DEFAULT_SCHEDULES == hf.DEFAULT_SCHEDULES
+    assert hp.parse_schedule(hp.DEFAULT_SCHEDULES[-1]) == DEFAULT_SCHEDULE
+    assert hp.DEFAULT_SCHEDULES[-1] == "K2M8:S0.05"

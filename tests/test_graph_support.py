@@ -143,5 +143,8 @@ def test_training_records_the_friction_range_of_its_data():
     assert friction_range([T([30.0] * 4), T([17.5, 17.5]), T([42.0])]) == pytest.approx(
         [17.5, 42.0], abs=1e-5)
     assert friction_range([T([0.0, 0.0])]) is None and friction_range([]) is None
+    from diffgns.scene.materials import friction_angle_of_feature, friction_feature
+
+    assert friction_angle_of_feature(friction_feature(33.0)) == pytest.approx(33.0, abs=1e-5)
     lo, hi = ModelSource.from_info(_info("gns_general")).friction_angle
     assert 15.0 <= lo < 15.5 and 44.5 < hi <= 45.0  # the recipe draws 15-45 deg

@@ -148,8 +148,9 @@ def friction_range(trajs) -> list[float] | None:
     tan_all = tan_all[tan_all > 0]
     if not tan_all.size:
         return None
-    return [float(np.degrees(np.arctan(tan_all.min()))),
-            float(np.degrees(np.arctan(tan_all.max())))]
+    from diffgns.scene.materials import friction_angle_of_feature
+
+    return [friction_angle_of_feature(tan_all.min()), friction_angle_of_feature(tan_all.max())]
 
 
 def build(train_paths, gns_kw: dict, factor: int = 1, frame_stride: int = 1):

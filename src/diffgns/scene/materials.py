@@ -55,6 +55,12 @@ def friction_feature(phi_deg: ArrayLike) -> jax.Array:
     return jnp.tan(jnp.deg2rad(phi_deg))
 
 
+def friction_angle_of_feature(feature) -> float:
+    """The inverse of :func:`friction_feature` on the host: degrees of ``arctan(feature)``
+    (a float; e.g. the friction angles of a dataset's stored ``material_property``)."""
+    return math.degrees(math.atan(float(feature)))
+
+
 @dataclass(frozen=True)
 class Elastic:
     """Hyperelastic solid.
