@@ -174,6 +174,34 @@ $(eval $(call GRANULAR_HELDOUT,2,5,6,7))
 granular-fresh3-data: data/granular_test3.h5 data/granular_longbox3.h5 data/granular_compose3.h5
 $(eval $(call GRANULAR_HELDOUT,3,8,9,10))
 
+# issue 4's column collapses of gns_cg16 / gns_cg16_pfn (their cards' data recipes): the
+# 36-collapse training grid, its validation and test sets, the 12 tall columns of
+# gns_cg16_pfn's stage 9 and its second validation and test sets. One process per file;
+# `make -j2 columns16-data` makes them two at a time (~10 min on two cores).
+COLUMNS16 = $(VENV)/bin/diffgns dataset --kind column --frames 250 --cells-across 16 \
+	--domain-length 0.8 --domain-height 0.35
+.PHONY: columns16-data
+columns16-data: data/columns16_train.h5 data/columns16_valid.h5 data/columns16_test.h5 \
+	data/columns16_tall.h5 data/columns16_valid2.h5 data/columns16_test2.h5
+
+data/columns16_train.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 0.5 1.0 1.5 2.0 2.5 3.0 \
+		--friction-angles 20 25 30 35 40 45 --batch 6 --out $@
+data/columns16_valid.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 1.25 2.25 --friction-angles 22.5 42.5 --batch 2 --out $@
+data/columns16_test.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 0.75 1.75 2.75 --friction-angles 27.5 37.5 \
+		--batch 2 --out $@
+data/columns16_tall.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 2.375 2.625 2.875 --friction-angles 20 30 40 45 \
+		--batch 4 --out $@
+data/columns16_valid2.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 0.625 1.375 2.125 2.9375 --friction-angles 24 33 \
+		--batch 4 --out $@
+data/columns16_test2.h5: $(VENV)/.installed-test
+	nice -n 19 $(COLUMNS16) --aspect-ratios 1.125 2.4375 2.6875 --friction-angles 22 28.5 39 \
+		--batch 3 --out $@
+
 # issue 24: small 3D axisymmetric collapses for the 3D GNS (R0 = 5 cm, 4 cells across R0,
 # 8 particles per cell: 200-1,700 particles; 0.6 s of flow). Training set on a grid of
 # aspect ratios x friction angles, validation between them; the held-out test set

@@ -1,5 +1,5 @@
 # Shared by the staged training scripts (examples/train_*_gns.sh), sourced after they set
-# DATA, VALID, RUNS, NET and VALIDATE_EVERY.
+# DATA (one or more files, space-separated), VALID, RUNS, NET and VALIDATE_EVERY.
 #   stage NAME INIT NOISE PUSH STEPS LR LR_FINAL
 # trains stage NAME (seed = its number, or $SEED when set) into $RUNS/NAME from INIT ("-":
 # from scratch) with random-walk noise NOISE (m), push-forward PUSH, STEPS steps and a
@@ -15,7 +15,7 @@ stage() {
   local saved="checkpoints/$(basename "$RUNS")/$1"
   if [ ! -d "$out" ] && [ -d "$saved" ]; then run mkdir -p "$out"; run cp -r "$saved/." "$out/"; fi
   if [ -d "$out/model" ]; then echo "stage $1 done ($out/model)"; return; fi
-  run diffgns train --data "$DATA" --valid "$VALID" --out "$out" $NET --noise-std "$3" \
+  run diffgns train --data $DATA --valid "$VALID" --out "$out" $NET --noise-std "$3" \
     --push-forward "$4" --steps "$5" --lr "$6" --lr-final "$7" --lr-decay-steps "$5" \
     --validate-every "$VALIDATE_EVERY" --seed "${SEED:-${1#s}}" "${init[@]}"
 }
