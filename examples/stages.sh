@@ -6,8 +6,9 @@
 # learning rate decaying from LR to LR_FINAL; a stage whose model/ exists is skipped, an
 # interrupted one resumes from its checkpoint. A stage with no run folder starts from its
 # committed checkpoint, checkpoints/<basename of RUNS>/NAME, when there is one (runs/ is lost
-# with a checkout; commit a stage's folder there to carry it over). DRY=1 prints the commands instead.
-run() { if [ -n "${DRY:-}" ]; then echo "$@"; else "$@"; fi; }
+# with a checkout; commit a stage's folder there to carry it over). DRY=1 prints the commands instead
+# (shell-quoted: one word per argument).
+run() { if [ -n "${DRY:-}" ]; then printf '%q ' "$@"; echo; else "$@"; fi; }
 
 stage() {
   local out="$RUNS/$1" init=()

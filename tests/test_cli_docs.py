@@ -52,3 +52,32 @@ def test_description_lists_every_subcommand_and_no_none_choice():
         assert f"\n  {name} " in parser.description, name
         for a in p._actions:
             assert None not in (a.choices or []), f"{name} {a.option_strings} lists None"
+
+
+STAGED = [("train_general_gns.sh", {}), ("train_general_radius.sh", {"RADIUS": "0.022"}),
+          ("train_column3d_gns.sh", {}), ("train_column_unroll.sh", {"STAGE": "u8"}),
+          ("train_column_unroll.sh", {"STAGE": "u16"})]
+
+
+@pytest.mark.parametrize("script,env", STAGED, ids=[f"{s}-{e}" for s, e in STAGED])
+def test_staged_training_scripts_print_commands_the_cli_accepts(script, env, tmp_path):
+    """``DRY=1 examples/<script>`` prints its ``diffgns train`` stages; each parses, with
+    every data file of the script as its own argument (``--data a.h5 b.h5``)."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    run = subprocess.run(["bash", str(root / "examples" / script)], cwd=tmp_path,
+                         env={**os.environ, **env, "DRY": "1", "RUNS": str(tmp_path / "r")},
+                         capture_output=True, text=True, check=True)
+    cmds = [shlex.split(s) for s in run.stdout.splitlines() if s.startswith("diffgns train")]
+    assert cmds, run.stdout
+    for argv in cmds:
+        args = cli.build_parser(argv[1:]).parse_args(argv[1:])
+        assert args.command == "train" and all(" " not in d for d in args.data), argv
+    if script == "train_column_unroll.sh":
+        (argv,) = cmds
+        args = cli.build_parser(argv[1:]).parse_args(argv[1:])
+        assert args.data == ["data/columns16_train.h5", "data/columns16_tall.h5"]
+        assert args.unroll == {"u8": 8, "u16": 16}[env["STAGE"]]
