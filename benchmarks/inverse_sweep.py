@@ -219,6 +219,7 @@ def main(argv=None) -> None:
                     protocol=run.metadata()),
                     indent=2))
                 mpath.write_text(markdown(rows, model))
+    mpath.write_text(markdown(rows, model))  # also when every case was done before
     print(markdown(rows, model))
     print(f"wrote {jpath} and {mpath}")
 

@@ -452,3 +452,18 @@ def test_benchmark_default_sets_name_the_library_default_schedule():
     assert hp.DEFAULT_SCHEDULES == hf.DEFAULT_SCHEDULES
     assert hp.parse_schedule(hp.DEFAULT_SCHEDULES[-1]) == DEFAULT_SCHEDULE
     assert hp.DEFAULT_SCHEDULES[-1] == "K2M8:S0.05"
+
+
+def test_inversion_sweep_with_every_case_done_writes_its_table(tmp_path, monkeypatch):
+    """A resumed sweep whose JSON already holds every case (e.g. rows merged from sweeps
+    split over the cores) runs nothing and still writes the markdown table it reports."""
+    monkeypatch.setattr(isw, "RESULTS", tmp_path)
+    row = dict(simulator="mpm", scene="squares:9000009", objective="deposit", true_phi=30.0,
+               recovered_phi=30.01, error_deg=0.01, iterations=3, seconds=1.0,
+               load_1min=0.1, warnings=[], parameter_warnings=[])
+    (tmp_path / "s.json").write_text(json.dumps(dict(rows=[row])))
+    isw.main(["--aspect-ratios", "--scenes", "squares:9000009", "--phis", "30",
+              "--simulators", "mpm", "--objective", "deposit", "--allow-loaded",
+              "--out", "s"])
+    md = (tmp_path / "s.md").read_text()
+    assert "| 30.01 | +0.01 | yes (±0.5) |" in md
