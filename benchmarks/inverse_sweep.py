@@ -53,7 +53,8 @@ def key(row: dict) -> tuple:
 
 def markdown(rows: list[dict], model: str) -> str:
     """The table of ``rows`` (one line per simulator, aspect ratio and true phi)."""
-    lines = [f"Friction angle recovered from the observed MPM runout (model `{model}`; "
+    lines = [f"Friction angle recovered from an observed MPM run: its runout, or the "
+             f"objective named beside the scene (model `{model}`; "
              "seconds: whole job incl. compile, indicative only, load average in brackets)",
              "", "| simulator | scene | true φ (°) | recovered φ (°) | error (°) | "
              "within target | iterations | seconds (load) |", "|---|---|---|---|---|---|---|---|"]
