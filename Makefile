@@ -177,7 +177,7 @@ $(eval $(call GRANULAR_HELDOUT,3,8,9,10))
 # issue 4's column collapses of gns_cg16 / gns_cg16_pfn (their cards' data recipes): the
 # 36-collapse training grid, its validation and test sets, the 12 tall columns of
 # gns_cg16_pfn's stage 9 and its second validation and test sets. One process per file;
-# `make -j2 columns16-data` makes them two at a time (~10 min on two cores).
+# `make -j2 columns16-data` makes them two at a time (~5 min on two cores, 2026-12-07).
 COLUMNS16 = $(VENV)/bin/diffgns dataset --kind column --frames 250 --cells-across 16 \
 	--domain-length 0.8 --domain-height 0.35
 .PHONY: columns16-data
