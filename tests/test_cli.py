@@ -128,7 +128,8 @@ def test_hybrid_command_defaults_are_the_schedule_defaults_and_the_best_model(ca
     text = " ".join(capsys.readouterr().out.split())
     d = DEFAULT_SCHEDULE
     for flag, value in (("--warmup", d.warmup), ("--gns-frames", d.gns_frames),
-                        ("--mpm-frames", d.mpm_frames), ("--warmup-settle", d.warmup_settle)):
+                        ("--mpm-frames", d.mpm_frames), ("--warmup-settle", d.warmup_settle),
+                        ("--handoff", d.handoff), ("--particle-map", d.particle_map)):
         assert re.search(rf"{flag} \S+ (?:(?! --).)*?\(default {value}\b", text), flag
 
 
